@@ -14,6 +14,7 @@ from envs_mjx.base import ResetFreeEnv
 # name -> "module:Class"; modules are imported on first use so that importing the registry is cheap.
 _REGISTRY: dict[str, str] = {
     "point_umaze": "envs_mjx.point_umaze:PointUMaze",
+    "ant": "envs_mjx.ant:Ant",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)

@@ -53,6 +53,12 @@ def physics_substeps(model: mjx.Model, data: mjx.Data, num_substeps: int) -> mjx
     return data
 
 
+def clip_action(action: jax.Array) -> jax.Array:
+    """Actions clipped to [-1, 1] as strong float32, so a weakly typed input (e.g. `jnp.full(n, 0.5)`)
+    cannot change the state's dtypes and force a retrace of a jitted step."""
+    return jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
+
+
 def distance_within(points: jax.Array, x: jax.Array) -> jax.Array:
     """Euclidean distance from x (D,) to the nearest of points (N, D)."""
     return jnp.min(jnp.linalg.norm(points - x, axis=-1))

@@ -27,7 +27,7 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs_mjx.base import ResetFreeEnv
+from envs_mjx.base import ResetFreeEnv, clip_action
 
 LAYOUT = ("11111", "10001", "11101", "10001", "11111")  # 1 = wall block; (row i, col j)
 CELL = 4.0
@@ -129,7 +129,7 @@ class PointUMaze(ResetFreeEnv):
 
     def step(self, state: State, action: jax.Array) -> State:
         data = state.pipeline_state
-        action = jnp.clip(action, -1.0, 1.0)
+        action = clip_action(action)
         heading = wrap_angle(data.qpos[2] + MAX_TURN * action[1])
         forward = action[0] * jnp.array([jnp.cos(heading), jnp.sin(heading)])
         qvel = jnp.clip(data.qvel, -VELOCITY_LIMIT, VELOCITY_LIMIT)
