@@ -191,3 +191,20 @@ def test_sigkill_during_writes_leaves_a_valid_checkpoint(tmp_path):
     restored = checkpoint.RunCheckpointer(tmp_path, {"x": 1}, every_steps=1).latest_valid(template)
     assert restored.step >= 1 and int(restored.state["step"]) == restored.step
     assert float(restored.state["big"].min()) == float(restored.state["big"].max()) == restored.step
+
+
+def test_ctrl_c_during_a_save_finishes_the_save_first(tmp_path):
+    checkpointer = checkpoint.RunCheckpointer(tmp_path, CONFIG, every_steps=10)
+    original_save = checkpointer.manager.save
+
+    def save_interrupted_midway(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives while orbax is writing
+        return original_save(*args, **kwargs)
+
+    checkpointer.manager.save = save_interrupted_midway
+    with pytest.raises(KeyboardInterrupt):
+        checkpointer.save(10, make_state(10))
+    checkpointer.manager.save = original_save
+    restored = checkpointer.latest_valid(make_state(0))
+    assert restored.step == 10 and (tmp_path / "checkpoints" / "10" / checkpoint.FILE_MANIFEST).exists()
+    assert_trees_equal(restored.state, make_state(10))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,9 +17,11 @@ from morefree_jax.go_explore import (
     choose_goal_type,
     commit_goal,
     init_schedule,
+    next_chunk_goal,
     pair_start_probability,
     schedule_metrics,
 )
+from morefree_jax.planner import PlannerState
 
 NUM_CHUNKS = 10_000
 GOAL_SIZE = 3
@@ -120,3 +123,32 @@ def test_phase_lengths_metrics_and_validation():
         ScheduleConfig(kind="random")
     with pytest.raises(ValueError, match="alpha"):
         ScheduleConfig(alpha=1.5)
+
+
+def test_next_chunk_goal_searches_only_when_due_and_compiles_once():
+    config = ScheduleConfig(kind="planner", goal_update_every=3)
+    low, high = -jnp.ones(GOAL_SIZE) * 100, jnp.ones(GOAL_SIZE) * 100
+
+    def fake_search(planner_state, key):
+        # A "search" moves the Gaussian's mean by +1 and returns a goal tagged 50 + new mean.
+        new_state = planner_state.replace(mean=planner_state.mean + 1.0)
+        return new_state.mean + 50.0, new_state, {"planner/score": jnp.float32(7.0)}
+
+    @chex.assert_max_traces(n=1)
+    def step(schedule_state, planner_state, key):
+        return next_chunk_goal(config, schedule_state, planner_state, key, jnp.ones(GOAL_SIZE),
+                               2 * jnp.ones(GOAL_SIZE), fake_search, low, high)
+
+    step = jax.jit(step)
+    schedule_state = init_schedule(GOAL_SIZE, config)
+    planner_state = PlannerState(mean=jnp.zeros(GOAL_SIZE), std=jnp.zeros(GOAL_SIZE), score=jnp.zeros(()))
+    goals, scores = [], []
+    for index in range(7):
+        goal, choice, schedule_state, planner_state, metrics = step(
+            schedule_state, planner_state, jax.random.PRNGKey(index))
+        goals.append(float(goal[0]))
+        scores.append(float(metrics["planner/score"]))
+    # Searches at chunks 0, 3, 6 (goal 50 + mean); in between, samples of the stored Gaussian (std 0: mean).
+    assert goals == [51.0, 1.0, 1.0, 52.0, 2.0, 2.0, 53.0]
+    assert scores == [7.0, 0.0, 0.0, 7.0, 0.0, 0.0, 7.0]
+    assert int(schedule_state.type_counts[GoalType.PLANNER]) == 7

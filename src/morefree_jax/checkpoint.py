@@ -17,11 +17,14 @@ name; the per-array CRCs catch anything the file check cannot (and cover checkpo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import pathlib
 import shutil
+import signal
+import threading
 import warnings
 import zlib
 from typing import Any, NamedTuple
@@ -134,6 +137,23 @@ def _check_files(step_dir: pathlib.Path) -> None:
             raise CheckpointError(f"file {path} is corrupted (checksum mismatch)")
 
 
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """A Ctrl-C during a save lets the save finish, then raises KeyboardInterrupt (main thread only;
+    elsewhere, and for SIGKILL, orbax's tmp-dir + rename keeps the checkpoint dir consistent)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
+
+
 def _write_json_atomically(path: pathlib.Path, payload: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload))
@@ -181,13 +201,12 @@ class RunCheckpointer:
             "config_hash": config_hash(self.config_dict),
             "checksums": array_checksums(state),
         }
-        self.manager.save(
-            step, args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
-            force=True,
-        )
-        self.manager.wait_until_finished()
-        step_dir = self.directory / str(step)
-        _write_json_atomically(step_dir / FILE_MANIFEST, _file_manifest(step_dir))
+        with _interrupts_deferred():
+            items = ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta))
+            self.manager.save(step, args=items, force=True)
+            self.manager.wait_until_finished()
+            step_dir = self.directory / str(step)
+            _write_json_atomically(step_dir / FILE_MANIFEST, _file_manifest(step_dir))
         return True
 
     def _restore_verified(self, step: int, target: Any) -> Restored:

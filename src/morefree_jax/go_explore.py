@@ -16,7 +16,9 @@ does not need one (e.g. `lax.cond(choice.replan, plan_goal, sample_stored_goal)`
     choice = choose_goal_type(config, state, key)                     # GoalChoice(goal_type, replan)
     goal, state = commit_goal(config, state, choice, eval_goal, initial_goal, planner_goal)
 
-The fused collection scan (go phase, early switch, explore phase) is added at integration.
+`next_chunk_goal` puts both steps together with the planner: a search (under lax.cond, only when due) or
+a sample of the stored Gaussian. The fused collection scan (go phase, early switch, explore phase) is added
+at integration.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from flax import struct
+
+from morefree_jax.planner import PlannerState, sample_stored_goal
 
 SCHEDULE_KINDS = ("planner", "back_and_forth", "episodic_planner", "eval_only")
 
@@ -164,3 +168,38 @@ def schedule_metrics(choice: GoalChoice, state: ScheduleState) -> dict:
     metrics = {"goal/type": choice.goal_type, "goal/replanned": choice.replan.astype(jnp.float32)}
     metrics.update({f"goal/share_{name}": shares[t] for t, name in enumerate(GOAL_TYPE_NAMES)})
     return metrics
+
+
+def next_chunk_goal(
+    config: ScheduleConfig,
+    schedule_state: ScheduleState,
+    planner_state: PlannerState,
+    key: jax.Array,
+    eval_goal: jax.Array,
+    initial_goal: jax.Array,
+    search_fn,
+    low: jax.Array,
+    high: jax.Array,
+):
+    """The next chunk's goal (D,) with the planner wired in; jittable (jit at the caller).
+
+    search_fn(planner_state, key) -> (goal, planner_state, metrics): a full goal search (e.g. plan_goal from
+    start_search(config, current obs) with the agent's score), run only when the schedule says a
+    re-optimisation is due; otherwise the planner goal is a sample of the stored Gaussian and the metrics
+    are zeros of the same structure. Returns (goal, GoalChoice, schedule_state, planner_state, metrics).
+    """
+    key_type, key_search, key_sample = jax.random.split(key, 3)
+    choice = choose_goal_type(config, schedule_state, key_type)
+    metric_shapes = jax.eval_shape(search_fn, planner_state, key_search)[2]
+
+    def search(state):
+        return search_fn(state, key_search)
+
+    def reuse(state):
+        zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), metric_shapes)
+        return sample_stored_goal(state, low, high, key_sample), state, zeros
+
+    planner_goal, planner_state, planner_metrics = jax.lax.cond(choice.replan, search, reuse, planner_state)
+    goal, schedule_state = commit_goal(config, schedule_state, choice, eval_goal, initial_goal, planner_goal)
+    metrics = {**schedule_metrics(choice, schedule_state), **planner_metrics}
+    return goal, choice, schedule_state, planner_state, metrics

@@ -9,8 +9,15 @@ goal-conditioned policy in the world model from the current latent, sum the expl
     goal, state, metrics = plan_goal(score_fn, state, low, high, key, config)
     goal = sample_stored_goal(state, low, high, key)               # between re-optimisations
 
-Everything is pure and jittable; jit at the caller with `score_fn` and `config` closed over
-(`jax.jit(functools.partial(plan_goal, score_fn, config=config))`), so one compilation serves every call.
+Everything is pure and jittable. Build `score_fn` INSIDE the jitted function from traced arguments, so the
+agent's parameters are inputs rather than baked-in constants and one compilation serves every call:
+
+    @functools.partial(jax.jit, static_argnames="config")
+    def search(agent_state, start_latent, planner_state, key, config):
+        def score_fn(candidates, key):                       # (G, D) -> (G,)
+            reward, returns = imagine_explore_value(agent_state, start_latent, candidates, key)  # (H, G) each
+            return peg_score(reward, returns, config.use_last_steps)
+        return plan_goal(score_fn, planner_state, low, high, key, config)
 """
 
 from __future__ import annotations
