@@ -1,0 +1,195 @@
+"""Run logging: resolved config.json, metrics.jsonl, TensorBoard scalars, progress display, timers.
+
+    logger = RunLogger(run_dir, config_dict, total_steps, resume_step=restored_step_or_None)
+    with logger.timer("collect"):
+        ...                                        # block_until_ready inside, or the time is dispatch only
+    logger.log(step, {"wm/loss": 1.2, "eval/success": 0.4})
+    logger.log_visitation(step, task_relevant_fraction, xy_histogram)
+    logger.close()
+
+metrics.jsonl holds one JSON object per `log` call: "step", the caller's flat metrics and the wall-clock
+fields, all named "time/..." (compare runs on the other keys). Resume contract: the loop logs a step's
+metrics BEFORE it saves that step's checkpoint; on resume from the checkpoint at step S, lines with
+step > S are dropped (they are logged again by the resumed run), so the resumed file has the same
+non-time lines as an uninterrupted run's. TensorBoard hides its events after S the same way (purge_step).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import pathlib
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+PROGRESS_MODES = ("auto", "bar", "lines", "off")
+
+
+def _scalar(name: str, value: Any) -> float | int | bool:
+    array = np.asarray(value)
+    if array.size != 1:
+        raise TypeError(f"metric {name!r} must be a scalar, got shape {array.shape}")
+    item = array.reshape(()).item()
+    if not isinstance(item, (bool, int, float)):
+        raise TypeError(f"metric {name!r} must be numeric, got {type(item).__name__}")
+    return item
+
+
+def _write_text_atomically(path: pathlib.Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def read_metrics(path) -> list[dict]:
+    """The records of a metrics.jsonl file (skipping a torn last line left by a killed process)."""
+    records = []
+    for line in pathlib.Path(path).read_text().splitlines():
+        with contextlib.suppress(json.JSONDecodeError):
+            records.append(json.loads(line))
+    return records
+
+
+class RunLogger:
+    """Writes <run_dir>/config.json, metrics.jsonl, tb/ (TensorBoard) and plots/, and shows progress.
+
+    resume_step: the step of the checkpoint the run resumed from (None for a fresh run: metrics.jsonl starts
+    empty). progress: "auto" = a tqdm bar when stderr is a TTY, else a plain line every `line_every_s`
+    seconds on stdout; "bar", "lines" or "off" force one.
+    """
+
+    def __init__(self, run_dir, config_dict: dict, total_steps: int, resume_step: int | None = None,
+                 progress: str = "auto", line_every_s: float = 30.0, tensorboard: bool = True):
+        if progress not in PROGRESS_MODES:
+            raise ValueError(f"progress must be one of {PROGRESS_MODES}, got {progress!r}")
+        self.run_dir = pathlib.Path(run_dir)
+        self.plots_dir = self.run_dir / "plots"
+        self.plots_dir.mkdir(parents=True, exist_ok=True)
+        config_text = json.dumps(config_dict, indent=2, sort_keys=True)
+        _write_text_atomically(self.run_dir / "config.json", config_text)
+        self.total_steps = total_steps
+        self.metrics_path = self.run_dir / "metrics.jsonl"
+        self._elapsed_offset = self._truncate_metrics(resume_step)
+        self._metrics_file = open(self.metrics_path, "a")  # noqa: SIM115 - kept open for the run
+        self._start = time.perf_counter()
+        self._last_step = resume_step or 0
+        self._last_time = self._start
+        self._last_line_time = -math.inf
+        self._line_every_s = line_every_s
+        self.last_success: float | None = None
+        self._timers: dict[str, list[float]] = {}
+        self._writer = None
+        if tensorboard:
+            from tensorboardX import SummaryWriter
+
+            purge = None if resume_step is None else resume_step + 1
+            self._writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge)
+        if progress == "auto":
+            progress = "bar" if sys.stderr.isatty() else "lines"
+        self._progress_mode = progress
+        self._bar = None
+        if progress == "bar":
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total_steps, initial=resume_step or 0, unit="step", dynamic_ncols=True)
+
+    def _truncate_metrics(self, resume_step: int | None) -> float:
+        """Keeps the lines with step <= resume_step (none for a fresh run); returns the last elapsed time."""
+        if not self.metrics_path.exists():
+            return 0.0
+        records = [] if resume_step is None else read_metrics(self.metrics_path)
+        kept = [r for r in records if r["step"] <= resume_step]
+        _write_text_atomically(self.metrics_path, "".join(json.dumps(r) + "\n" for r in kept))
+        return float(kept[-1].get("time/elapsed_s", 0.0)) if kept else 0.0
+
+    # ---- metrics -------------------------------------------------------------------------------
+    def log(self, step: int, metrics: dict) -> dict:
+        """Appends one record (step, metrics, time/*) to metrics.jsonl and TensorBoard; returns the record."""
+        now = time.perf_counter()
+        record = {"step": int(step)}
+        record.update({name: _scalar(name, value) for name, value in metrics.items()})
+        if now > self._last_time and step > self._last_step:
+            record["time/steps_per_s"] = (step - self._last_step) / (now - self._last_time)
+            self._last_step, self._last_time = int(step), now
+        record["time/elapsed_s"] = self._elapsed_offset + now - self._start
+        record["time/wall"] = time.time()
+        self._metrics_file.write(json.dumps(record) + "\n")
+        self._metrics_file.flush()
+        if self._writer is not None:
+            for name, value in record.items():
+                if name not in ("step", "time/wall"):
+                    self._writer.add_scalar(name, float(value), global_step=int(step))
+        if "eval/success" in record:
+            self.last_success = float(record["eval/success"])
+        self._show_progress(int(step), record.get("time/steps_per_s"))
+        return record
+
+    def _show_progress(self, step: int, steps_per_s: float | None) -> None:
+        success = "-" if self.last_success is None else f"{self.last_success:.2f}"
+        if self._bar is not None:
+            self._bar.n = step
+            self._bar.set_postfix_str(f"success {success}", refresh=True)
+        elif self._progress_mode == "lines":
+            now = time.perf_counter()
+            if now - self._last_line_time >= self._line_every_s or step >= self.total_steps:
+                self._last_line_time = now
+                rate = "-" if steps_per_s is None else f"{steps_per_s:.0f}"
+                percent = 100.0 * step / max(self.total_steps, 1)
+                print(f"step {step}/{self.total_steps} ({percent:.1f}%) {rate} steps/s success {success}",
+                      flush=True)
+
+    def log_visitation(self, step: int, task_relevant_fraction: float, xy_histogram) -> dict:
+        """Saves the 2-D visitation histogram as plots/visitation_<step>.npy and logs its summary:
+        task-relevant fraction, share of occupied cells, normalised entropy of the visitation."""
+        histogram = np.asarray(xy_histogram, dtype=np.float64)
+        if histogram.ndim != 2:
+            raise ValueError(f"xy_histogram must be 2-D, got shape {histogram.shape}")
+        np.save(self.plots_dir / f"visitation_{int(step):09d}.npy", histogram)
+        total = histogram.sum()
+        probabilities = histogram.ravel() / total if total > 0 else np.zeros(histogram.size)
+        nonzero = probabilities[probabilities > 0]
+        entropy = -(nonzero * np.log(nonzero)).sum() / np.log(histogram.size) if histogram.size > 1 else 0.0
+        return self.log(step, {
+            "visitation/task_relevant": float(task_relevant_fraction),
+            "visitation/occupied_cells": float(np.mean(histogram > 0)),
+            "visitation/entropy": float(entropy),
+        })
+
+    # ---- timers --------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def timer(self, name: str):
+        """Times the block; the first duration of each name is kept apart (it includes compilation)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._timers.setdefault(name, []).append(time.perf_counter() - start)
+
+    def timing_metrics(self) -> dict:
+        """time/<name>_first_s (compile + run) and time/<name>_s (mean of the later calls)."""
+        metrics = {}
+        for name, durations in self._timers.items():
+            metrics[f"time/{name}_first_s"] = durations[0]
+            if len(durations) > 1:
+                metrics[f"time/{name}_s"] = float(np.mean(durations[1:]))
+        return metrics
+
+    def close(self) -> None:
+        self._metrics_file.flush()
+        self._metrics_file.close()
+        if self._writer is not None:
+            self._writer.flush()
+            self._writer.close()
+        if self._bar is not None:
+            self._bar.close()
+
+    def __enter__(self) -> RunLogger:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

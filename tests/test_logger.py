@@ -1,0 +1,131 @@
+"""RunLogger: files written, resume truncation, TensorBoard scalars, visitation summary, progress lines."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import numpy as np
+import pytest
+from tensorboardX.proto import event_pb2
+
+from morefree_jax.logger import RunLogger, read_metrics
+
+CONFIG = {"env": "point_umaze", "agent": {"alpha": 0.2}, "seed": 3}
+
+
+def tensorboard_events(run_dir) -> list:
+    """Every Event proto of the event files under run_dir/tb (TFRecord framing: length, crc, data, crc)."""
+    events = []
+    for path in sorted((run_dir / "tb").glob("events.out.tfevents.*")):
+        data = path.read_bytes()
+        offset = 0
+        while offset < len(data):
+            (length,) = struct.unpack("<Q", data[offset:offset + 8])
+            events.append(event_pb2.Event.FromString(data[offset + 12:offset + 12 + length]))
+            offset += 12 + length + 4
+    return events
+
+
+def tensorboard_scalars(run_dir) -> dict[str, list[tuple[int, float]]]:
+    """(step, value) per tag."""
+    scalars: dict[str, list] = {}
+    for event in tensorboard_events(run_dir):
+        for value in event.summary.value:
+            scalars.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return scalars
+
+
+def without_time(records):
+    return [{k: v for k, v in r.items() if not k.startswith("time/")} for r in records]
+
+
+def log_steps(logger, steps):
+    for step in steps:
+        logger.log(step, {"wm/loss": 1.0 / step, "eval/success": step / 10, "goal/type": step % 3})
+
+
+def test_writes_config_metrics_tensorboard(tmp_path):
+    with RunLogger(tmp_path, CONFIG, total_steps=50, progress="off") as logger:
+        log_steps(logger, [10, 20, 30])
+        assert logger.last_success == pytest.approx(3.0)
+    assert json.loads((tmp_path / "config.json").read_text()) == CONFIG
+    records = read_metrics(tmp_path / "metrics.jsonl")
+    assert [r["step"] for r in records] == [10, 20, 30]
+    assert records[1]["wm/loss"] == pytest.approx(0.05) and records[2]["goal/type"] == 0
+    assert {"time/elapsed_s", "time/wall", "time/steps_per_s"} <= set(records[1])
+    assert records[2]["time/elapsed_s"] >= records[1]["time/elapsed_s"] >= 0
+    scalars = tensorboard_scalars(tmp_path)
+    assert [step for step, _ in scalars["wm/loss"]] == [10, 20, 30]
+    assert scalars["eval/success"][2][1] == pytest.approx(3.0)
+
+
+def test_resume_drops_lines_after_the_checkpoint_and_appends(tmp_path):
+    uninterrupted, interrupted = tmp_path / "a", tmp_path / "b"
+    with RunLogger(uninterrupted, CONFIG, 60, progress="off") as logger:
+        log_steps(logger, range(10, 70, 10))
+    with RunLogger(interrupted, CONFIG, 60, progress="off") as logger:
+        log_steps(logger, range(10, 50, 10))  # killed after logging step 40; last checkpoint at step 20
+    with open(interrupted / "metrics.jsonl", "a") as handle:
+        handle.write('{"step": 50, "wm/lo')  # torn line of the killed process
+    first_run_elapsed = read_metrics(interrupted / "metrics.jsonl")[1]["time/elapsed_s"]
+    with RunLogger(interrupted, CONFIG, 60, resume_step=20, progress="off") as logger:
+        log_steps(logger, range(30, 70, 10))
+    resumed = read_metrics(interrupted / "metrics.jsonl")
+    assert without_time(resumed) == without_time(read_metrics(uninterrupted / "metrics.jsonl"))
+    assert resumed[2]["time/elapsed_s"] >= first_run_elapsed  # elapsed time continues across the resume
+    # TensorBoard is told to hide the killed run's events from step 21 on (a session-start purge marker).
+    purges = [e.step for e in tensorboard_events(interrupted) if e.session_log.status == e.session_log.START]
+    assert purges == [21]
+    # A fresh (non-resumed) start in the same dir starts the file over.
+    with RunLogger(interrupted, CONFIG, 60, progress="off") as logger:
+        log_steps(logger, [10])
+    assert [r["step"] for r in read_metrics(interrupted / "metrics.jsonl")] == [10]
+
+
+def test_log_visitation_saves_histogram_and_summary(tmp_path):
+    histogram = np.array([[1.0, 0.0], [0.0, 3.0]])
+    with RunLogger(tmp_path, CONFIG, 100, progress="off") as logger:
+        record = logger.log_visitation(40, 0.25, histogram)
+    np.testing.assert_array_equal(np.load(tmp_path / "plots" / "visitation_000000040.npy"), histogram)
+    assert record["visitation/task_relevant"] == 0.25
+    assert record["visitation/occupied_cells"] == 0.5
+    expected_entropy = -(0.25 * math.log(0.25) + 0.75 * math.log(0.75)) / math.log(4)  # 0.4056
+    assert record["visitation/entropy"] == pytest.approx(expected_entropy)
+    logged = read_metrics(tmp_path / "metrics.jsonl")[0]
+    assert logged["visitation/entropy"] == pytest.approx(expected_entropy)
+
+
+def test_plain_progress_lines_when_not_a_tty(tmp_path, capsys):
+    # pytest's captured stderr is not a TTY, so "auto" prints plain lines: the first, then at most one per
+    # line_every_s (an hour here), and the last step.
+    with RunLogger(tmp_path, CONFIG, total_steps=40, line_every_s=3600) as logger:
+        log_steps(logger, [10, 20, 30, 40])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("step 10/40 (25.0%)") and lines[0].endswith("success 1.00")
+    assert lines[1].startswith("step 40/40 (100.0%)") and "steps/s" in lines[1]
+
+
+def test_timers_and_bad_metrics(tmp_path):
+    with RunLogger(tmp_path, CONFIG, 10, progress="off", tensorboard=False) as logger:
+        for _ in range(3):
+            with logger.timer("collect"):
+                sum(range(1000))
+        timing = logger.timing_metrics()
+        assert set(timing) == {"time/collect_first_s", "time/collect_s"}
+        assert timing["time/collect_s"] >= 0
+        with pytest.raises(TypeError, match="'wm/kl' must be a scalar"):
+            logger.log(1, {"wm/kl": np.ones(3)})
+        record = logger.log(2, {"wm/kl": np.float32(0.5), "nan_ok": float("nan")})
+        assert record["wm/kl"] == 0.5 and math.isnan(record["nan_ok"])
+    with pytest.raises(ValueError, match="progress must be one of"):
+        RunLogger(tmp_path, CONFIG, 10, progress="fancy")
+
+
+def test_progress_bar_mode(tmp_path, capsys):
+    with RunLogger(tmp_path, CONFIG, 40, resume_step=10, progress="bar", tensorboard=False) as logger:
+        log_steps(logger, [20, 30])
+    err = capsys.readouterr().err
+    assert "30/40" in err and "success 3.00" in err
