@@ -13,6 +13,8 @@ from envs_mjx.base import ResetFreeEnv
 
 # name -> "module:Class"; modules are imported on first use so that importing the registry is cheap.
 _REGISTRY: dict[str, str] = {
+    "tabletop": "envs_mjx.tabletop:Tabletop",
+    "sawyer_door": "envs_mjx.sawyer_door:SawyerDoor",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)
