@@ -105,7 +105,8 @@ class SawyerDoor(ResetFreeEnv):
             mocap_pos=jnp.asarray(INITIAL_HAND)[None],
             ctrl=jnp.array([-1.0, 1.0]),  # fingers open, as the original's hand reset
         )
-        data = mjx.forward(self.mjx_model, data)
+        # Kinematics suffice: every mjx.step recomputes the rest from qpos, qvel, mocap and ctrl.
+        data = mjx.kinematics(self.mjx_model, data)
         return self._state(data, self.observe(data), key_info)
 
     def step(self, state: State, action: jax.Array) -> State:
