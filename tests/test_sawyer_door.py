@@ -162,15 +162,19 @@ def c_mujoco_rollout(env_, data, actions):
 
 
 def test_mjx_matches_c_mujoco():
-    """Free motion (the hand rising) agrees to 1e-4; while the fingers push the door (contacts) qpos agrees
-    within 1 cm / 0.01 rad (contact points and the 4-iteration Newton solve differ slightly)."""
+    """Over 20 steps, free motion (the hand rising) agrees to 1e-4 (measured ~1e-7); while the fingers
+    push the door (contacts) the door angle agrees within 0.015 rad (measured up to 0.008: the light door
+    bounces off slightly different contact points) and hand and fingers within 1 mm (measured 1e-4)."""
     env_ = env()
     free = run(PUSH_OPEN)
     contact = run(CLOSE)
     contact_start = int(np.argmax(np.abs(contact[3] - contact[3][0]) > 1e-4)) - 2
     assert np.ptp(free[3][:21]) == 0.0 and contact[3][contact_start + 20] - contact[3][contact_start] > 0.1
-    for (datas, actions, *_), start, tolerance in ((free, 0, 1e-4), (contact, contact_start, 1e-2)):
+    door_qpos = env_.mj_model.jnt_qposadr[env_.mj_model.joint("doorjoint").id]
+    contact_tolerance = np.full(env_.mj_model.nq, 1e-3)
+    contact_tolerance[door_qpos] = 0.015
+    for (datas, actions, *_), start, tolerance in ((free, 0, 1e-4), (contact, contact_start, contact_tolerance)):
         data = jax.tree.map(lambda x, s=start: x[s], datas)
         reference = c_mujoco_rollout(env_, data, actions[start : start + 20])
         error = np.abs(reference - datas.qpos[start + 1 : start + 21]).max(0)
-        assert error.max() < tolerance, (start, error)
+        assert np.all(error < tolerance), (start, error)
