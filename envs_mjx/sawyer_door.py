@@ -110,8 +110,8 @@ class SawyerDoor(ResetFreeEnv):
         return self._state(data, self.observe(data), key_info)
 
     def step(self, state: State, action: jax.Array) -> State:
-        action = jnp.clip(action, -1.0, 1.0)
         data = state.pipeline_state
+        action = jnp.clip(action, -1.0, 1.0).astype(data.ctrl.dtype)  # strips a weak type (else: retrace)
         mocap = jnp.clip(data.mocap_pos + MOCAP_STEP * action[0:3], WORKSPACE_LOW, WORKSPACE_HIGH)
         data = data.replace(mocap_pos=mocap, ctrl=jnp.stack([action[3], -action[3]]))
         data = physics_substeps(self.mjx_model, data, self.frames_per_step)

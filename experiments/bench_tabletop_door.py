@@ -55,7 +55,9 @@ def door_closing_scan(env, num_steps: int):
         return (state, pushing), state.obs
 
     def rollout(key):
-        (state, _), observations = jax.lax.scan(body, (env.reset(key), jnp.array(False)), None, length=num_steps)
+        (state, _), observations = jax.lax.scan(
+            body, (env.reset(key), jnp.array(False)), None, length=num_steps
+        )
         return state, observations
 
     return jax.jit(rollout)

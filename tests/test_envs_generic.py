@@ -42,6 +42,8 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
 
 def test_step_traces_once(env_name):
     env = cached_env(env_name)
+    # chex keys its counter on the definition site, which every parametrization of this test shares.
+    chex.clear_trace_counter()
 
     @jax.jit
     @chex.assert_max_traces(n=1)

@@ -53,7 +53,12 @@ def push_open_controller(obs, phase, t, key):
     angle = door.door_angle_of_handle(obs[4:7])
     behind = leaf_point(angle, PUSH_RADIUS, -0.045, PUSH_Z)
     targets = jnp.stack(
-        [obs[0:3].at[2].set(0.32), behind.at[2].set(0.32), behind, leaf_point(angle - 0.3, PUSH_RADIUS, -0.025, PUSH_Z)]
+        [
+            obs[0:3].at[2].set(0.32),
+            behind.at[2].set(0.32),
+            behind,
+            leaf_point(angle - 0.3, PUSH_RADIUS, -0.025, PUSH_Z),
+        ]
     )
     reached = jnp.linalg.norm(obs[0:3] - targets[phase]) < 0.015
     phase = jnp.minimum(phase + reached.astype(jnp.int32), 3)
@@ -112,7 +117,9 @@ def test_reset_matches_the_reference_initial_state():
         np.testing.assert_allclose(obs[0:4], [0.00592, 0.39968, 0.19493, 1.0], atol=1e-5)
         np.testing.assert_allclose(obs[4:7], np.asarray(door.handle_position(angle)), atol=1e-5)
     # EARL's reference handle positions: 60 degrees open, and closed.
-    np.testing.assert_allclose(np.asarray(door.handle_position(door.OPEN_ANGLE)), [0.01007, 0.47105, 0.10004], atol=2e-5)
+    np.testing.assert_allclose(
+        np.asarray(door.handle_position(door.OPEN_ANGLE)), [0.01007, 0.47105, 0.10004], atol=2e-5
+    )
     np.testing.assert_allclose(door.GOAL_HANDLE, [0.29072, 0.74286, 0.10004], atol=2e-5)
 
 
@@ -129,7 +136,9 @@ def test_scripted_controller_closes_the_door_within_300_steps():
 
 def test_door_never_opens_beyond_the_stopper():
     _, _, obs, angle, _ = run(PUSH_OPEN)
-    assert obs[-1, 2] < 0.2 and np.linalg.norm(obs[-1, 4:6] - door.handle_position(door.OPEN_ANGLE)[:2]) < 0.01
+    assert (
+        obs[-1, 2] < 0.2 and np.linalg.norm(obs[-1, 4:6] - door.handle_position(door.OPEN_ANGLE)[:2]) < 0.01
+    )
     assert angle.min() > door.OPEN_ANGLE - STOPPER_TOLERANCE
     assert angle.min() < door.OPEN_ANGLE + 0.01, "the controller did push the door into the stopper"
     for seed in range(2):
@@ -173,7 +182,10 @@ def test_mjx_matches_c_mujoco():
     door_qpos = env_.mj_model.jnt_qposadr[env_.mj_model.joint("doorjoint").id]
     contact_tolerance = np.full(env_.mj_model.nq, 1e-3)
     contact_tolerance[door_qpos] = 0.015
-    for (datas, actions, *_), start, tolerance in ((free, 0, 1e-4), (contact, contact_start, contact_tolerance)):
+    for (datas, actions, *_), start, tolerance in (
+        (free, 0, 1e-4),
+        (contact, contact_start, contact_tolerance),
+    ):
         data = jax.tree.map(lambda x, s=start: x[s], datas)
         reference = c_mujoco_rollout(env_, data, actions[start : start + 20])
         error = np.abs(reference - datas.qpos[start + 1 : start + 21]).max(0)
