@@ -77,12 +77,12 @@ class Tabletop(ResetFreeEnv):
 
     def __init__(self, eval_episode_length=200, hard_reset_every=200_000, success_threshold=0.2):
         super().__init__(eval_episode_length, hard_reset_every, success_threshold)
-        data = mjx.make_data(self.mjx_model).replace(qpos=jnp.asarray(INITIAL_STATE[:4]))
-        self._initial_data = mjx.forward(self.mjx_model, data)
+        self._template = mjx.make_data(self.mjx_model)
 
     def reset(self, rng: jax.Array) -> State:
-        obs = jnp.asarray(INITIAL_STATE)
-        return self._state(self._initial_data, obs, rng)
+        data = self._template.replace(qpos=jnp.asarray(INITIAL_STATE[:4]))
+        data = mjx.kinematics(self.mjx_model, data)
+        return self._state(data, jnp.asarray(INITIAL_STATE), rng)
 
     def step(self, state: State, action: jax.Array) -> State:
         data = state.pipeline_state

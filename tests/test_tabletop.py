@@ -20,19 +20,37 @@ def env():
     return cached_env("tabletop")
 
 
-def take_actions(state, actions):
-    def body(state, action):
-        state = env().step(state, action)
-        return state, state.obs
+@functools.cache
+def reset():
+    return jax.jit(env().reset)(jax.random.PRNGKey(0))
 
-    return jax.lax.scan(body, state, jnp.asarray(actions, jnp.float32))
+
+NUM_ACTIONS = 20  # every scripted sequence is padded to this length, so take_actions compiles once
+
+
+@functools.cache
+def compiled_take_actions():
+    def take_actions(state, actions):
+        def body(state, action):
+            state = env().step(state, action)
+            return state, state.obs
+
+        return jax.lax.scan(body, state, actions)
+
+    return jax.jit(take_actions)
+
+
+def take_actions(state, actions, padding):
+    """Runs `actions` then `padding` up to NUM_ACTIONS steps. Returns (final state, observations)."""
+    actions = list(actions) + [padding] * (NUM_ACTIONS - len(actions))
+    return compiled_take_actions()(state, jnp.asarray(actions, jnp.float32))
 
 
 def test_grasp_threshold_move_and_clip_follow_the_original():
-    state = jax.jit(env().reset)(jax.random.PRNGKey(0))
+    state = reset()
     # Gripper walks to x = 2.0: 0.5 from the mug; grasping there fails, 0.2 closer it succeeds.
     actions = [[1.0, 0.0, OPEN]] * 10 + [[0.0, 0.0, CLOSE]] + [[1.0, 0.0, CLOSE]] * 2
-    _, obs = jax.jit(take_actions)(state, actions)
+    _, obs = take_actions(state, actions, padding=[0.0, 0.0, CLOSE])
     obs = np.asarray(obs)
     np.testing.assert_allclose(obs[9], [2.0, 0.0, 2.5, 0.0, -1.0, -1.0], atol=1e-5)
     np.testing.assert_allclose(obs[10], [2.0, 0.0, 2.5, 0.0, -1.0, -1.0], atol=1e-5)  # 0.5 > 0.4
@@ -43,11 +61,11 @@ def test_grasp_threshold_move_and_clip_follow_the_original():
 
 
 def test_held_mug_is_clipped_at_the_table_edge_and_released_on_open():
-    state = jax.jit(env().reset)(jax.random.PRNGKey(0))
+    state = reset()
     actions = [[1.0, 0.0, OPEN]] * 12 + [[0.0, 0.0, CLOSE]]  # gripper at 2.4, 0.1 from the mug
     actions += [[1.0, 0.5, CLOSE]] * 5  # pushes gripper and mug into the x edge
     actions += [[-1.0, 0.0, OPEN]] * 2  # release: the mug stays
-    _, obs = jax.jit(take_actions)(state, actions)
+    _, obs = take_actions(state, actions, padding=[-1.0, 0.0, OPEN])
     obs = np.asarray(obs)
     np.testing.assert_allclose(obs[12], [2.4, 0.0, 2.5, 0.0, 0.0, 0.0], atol=1e-5)
     # Gripper x: 2.4 -> 2.6 -> 2.8 (clipped); mug x: 2.5 -> 2.7 -> 2.8 (clipped) -> 2.8.
@@ -111,8 +129,8 @@ def test_scripted_tour_reaches_every_goal_and_returns_the_mug():
 
 def test_pipeline_state_holds_qpos_and_kinematics():
     env_ = env()
-    state = jax.jit(env_.reset)(jax.random.PRNGKey(0))
-    state, _ = jax.jit(take_actions)(state, [[-1.0, 0.5, OPEN]] * 3)
+    state = reset()
+    state, _ = take_actions(state, [[-1.0, 0.5, OPEN]] * 3, padding=[0.0, 0.0, OPEN])
     data = state.pipeline_state
     np.testing.assert_allclose(np.asarray(data.qpos), [-0.6, 0.3, 2.5, 0.0], atol=1e-5)
     mug = env_.mj_model.body("mug").id
