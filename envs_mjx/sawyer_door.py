@@ -2,7 +2,7 @@
 
 Control as the original (reference/envs.md section 3): action a in [-1, 1]^4; the mocap target moves by
 a[0:3] / 100 (at most 1 cm per axis and step) and is clipped to the workspace box
-[-0.5, 0.4, 0.05]..[0.5, 1.0, 0.5]; the hand follows the target through a soft equality (solref 0.02, 1);
+[-0.5, 0.4, 0.05]..[0.5, 0.825, 0.5]; the hand follows the target through a soft equality (solref 0.02, 1);
 the fingers get ctrl = [a3, -a3] on position actuators (kp 400). One step = 5 substeps of 0.0025 s.
 Observation (7,): hand position, gripper opening clip(|right pad - left pad| / 0.1, 0, 1), handle
 position. The goal part of the original's 14-D observation is not included (goals are passed
@@ -26,8 +26,13 @@ Deviations from the original (all forced by MJX on CPU or by MoReFree's simplifi
   (MoReFree's stopper: the door opens at most 60 degrees) instead of [-1.4, 0]. The observed handle
   point is a marker geom at the original handle mesh's centre, so initial and goal handle positions
   match EARL's (0.01007, 0.47105, 0.10004) and (0.29072, 0.74286, 0.10004).
+- Workspace box: Meta-World's hand box [-0.5, 0.4, 0.05]..[0.5, 1.0, 0.5] with y capped at 0.825, the
+  "workspace box in front of the door" of MoReFree (whose numbers are not public): the pads reach the
+  closed leaf's front face but never the frame, which therefore need not collide.
 - Collisions: only finger pads against the leaf panel and the handle (frame, table, gripper base are
-  visual), pyramidal friction cone, Newton with at most 4 iterations (original: elliptic, 50).
+  visual), pyramidal friction cone, Newton with at most 4 iterations and 6 line-search iterations
+  (original: elliptic, 50). Leaf density 54.4 gives the original leaf mass 0.111 kg; the hinge limit is
+  stiffened (solreflimit 0.005, solimplimit 0.99 0.999) so pushing does not carry the door past it.
 """
 
 from __future__ import annotations
@@ -43,7 +48,9 @@ from envs_mjx.base import ResetFreeEnv, physics_substeps
 
 MOCAP_STEP = 0.01  # metres of mocap displacement per unit action and axis
 WORKSPACE_LOW = np.array([-0.5, 0.40, 0.05], np.float32)
-WORKSPACE_HIGH = np.array([0.5, 1.0, 0.5], np.float32)
+# Meta-World's hand box with y capped in front of the door (MoReFree's numbers are unknown): the pads
+# (half depth 0.015) reach the closed leaf's front face (y 0.84) but never the frame (y >= 0.844).
+WORKSPACE_HIGH = np.array([0.5, 0.825, 0.5], np.float32)
 OPENING_SCALE = 0.1  # finger distance that counts as fully open
 
 HINGE = np.array([-0.085, 0.85], np.float32)  # hinge axis (world xy); door (0.1, 0.95) + leaf (-0.185, -0.1)
