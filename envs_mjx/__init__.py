@@ -15,6 +15,8 @@ from envs_mjx.base import ResetFreeEnv
 _REGISTRY: dict[str, str] = {
     "point_umaze": "envs_mjx.point_umaze:PointUMaze",
     "ant": "envs_mjx.ant:Ant",
+    "tabletop": "envs_mjx.tabletop:Tabletop",
+    "sawyer_door": "envs_mjx.sawyer_door:SawyerDoor",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)
