@@ -13,6 +13,10 @@ from envs_mjx.base import ResetFreeEnv
 
 # name -> "module:Class"; modules are imported on first use so that importing the registry is cheap.
 _REGISTRY: dict[str, str] = {
+    "push": "envs_mjx.fetch:FetchPush",
+    "pick_place": "envs_mjx.fetch:FetchPickPlace",
+    "push_hard": "envs_mjx.fetch:FetchPushHard",
+    "pick_place_hard": "envs_mjx.fetch:FetchPickPlaceHard",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)
