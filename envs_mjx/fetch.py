@@ -27,8 +27,8 @@ Deviations from the original, on purpose (also in README):
   - timestep 0.01 x 4 substeps, Newton 6 iterations / 6 line-search steps, pyramidal cone;
   - the finger contact parameters get priority over the block's (no averaging): a held block creeps
     < 0.1 mm per step instead of ~0.15 mm;
-  - the gripper workspace is a box (the original's arm reach has no box): x, y over the table top minus
-    the finger half-width, z in [0.417, 0.9];
+  - the gripper workspace is a box, the slide joints' range (the original's arm reach has no box):
+    x, y over the table top minus the finger half-width, z in [0.417, 0.9];
   - push / pick_place: the block hangs on IBC's slides + ball joint with +-0.2 m x/y limits around the
     initial gripper xy, with IBC v2's hardened limit solref/solimp (v1 used the softer defaults);
   - hard variants (MoReFree's, no public code): free block; frictionless walls whose inner faces are the
@@ -61,15 +61,14 @@ MAX_DISPLACEMENT = 0.05  # metres of gripper target displacement per unit action
 FINGER_CTRL_MAX = 0.05  # the joint range; the original clips at 0.2 and so overdrives the limit
 FINGER_GRASP_WIDTH = 0.0235  # finger qpos holding the 5 cm block (measured)
 GRIP_ABOVE_BLOCK = 0.045  # goal pose: finger bottoms 5 mm above the block top
-# Gripper workspace for the grip site: over the table minus the finger half-width; finger bottoms
-# (1.5 cm below the site) at least 2 mm above the table.
-WORKSPACE_LOW = np.array([1.0635, 0.415, 0.417])
-WORKSPACE_HIGH = np.array([1.6365, 1.085, 0.9])
 IBC_CONFINEMENT = 0.2  # block centre within +- this of the initial gripper xy (IBC's slide limits)
 IBC_OBJ_RANGE = 0.15  # block start / goal xy range around the initial gripper xy
 IBC_MIN_START_DISTANCE = 0.1  # block start at least this far from the gripper xy
 IBC_AIR_HEIGHT = 0.45  # pick_place: half of the goals rise up to this above the table
 HARD_BLOCK_START = np.array([1.43, 0.76, BLOCK_REST_Z])
+# qpos layout of both models: grip slides x y z, fingers r l, block position (3) + quaternion (4).
+BLOCK_POSITION = slice(5, 8)
+BLOCK_QUATERNION = slice(8, 12)
 PUSH_GRIPPER_START = (1.3479, 0.7489, 0.425)  # IBC's initial gripper xy (its limit centres) per task
 PICK_PLACE_GRIPPER_START = (1.3419, 0.7491, 0.625)
 
@@ -78,6 +77,16 @@ def ibc_box(gripper_start: tuple[float, float, float], height: float = 0.0) -> t
     """IBC's block start / goal box: xy +- 0.15 around the initial gripper xy, z from rest up by height."""
     center = np.array([gripper_start[0], gripper_start[1], BLOCK_REST_Z])
     return center - [IBC_OBJ_RANGE, IBC_OBJ_RANGE, 0.0], center + [IBC_OBJ_RANGE, IBC_OBJ_RANGE, height]
+
+
+def matrix_from_quaternion(quat: jax.Array) -> jax.Array:
+    """Rotation matrix (3, 3) of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = quat / jnp.linalg.norm(quat)
+    return jnp.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
 
 
 def euler_from_matrix(mat: jax.Array) -> jax.Array:
@@ -107,16 +116,17 @@ class _Fetch(ResetFreeEnv):
                  success_threshold: float = 0.05):
         super().__init__(eval_episode_length, hard_reset_every, success_threshold)
         model = self.mj_model
-        self._grip_site = model.site("grip").id
-        self._block_site = model.site("object0").id
         self._grip_qpos = int(model.joint("grip_x").qposadr[0])  # x, y, z slides are consecutive
+        # The workspace of the grip site is the slide joints' range (assets/fetch_scene.xml).
+        grip_range = np.array([model.joint(f"grip_{axis}").range for axis in "xyz"])
+        self.workspace_low, self.workspace_high = grip_range[:, 0], grip_range[:, 1]
         self._finger_qpos = int(model.joint("r_gripper_finger_joint").qposadr[0])  # r, then l
         self._finger_dof = int(model.joint("r_gripper_finger_joint").dofadr[0])
         block_joint = model.body("object0").jntadr[0]
         self._block_dof = int(model.jnt_dofadr[block_joint])
-        # reset() writes qpos as [grip xyz, fingers r l, block (3 position + 4 quaternion)].
-        assert (self._grip_qpos, self._finger_qpos, model.jnt_qposadr[block_joint], model.nq) == (0, 3, 5, 12)
-        self._block_origin = self._place_block_body()
+        layout = (self._grip_qpos, self._finger_qpos, model.jnt_qposadr[block_joint], model.nq)
+        assert layout == (0, 3, BLOCK_POSITION.start, BLOCK_QUATERNION.stop), f"qpos layout {layout}"
+        self._block_origin = jnp.asarray(self._place_block_body(), jnp.float32)
         self.mjx_model = put_mjx_model(self.mj_model)
         self._empty_data = mjx.make_data(self.mjx_model)
 
@@ -126,9 +136,11 @@ class _Fetch(ResetFreeEnv):
 
     # ---- observation ---------------------------------------------------------------------------
     def _observe(self, data: mjx.Data) -> jax.Array:
-        grip = data.site_xpos[self._grip_site]
-        block = data.site_xpos[self._block_site]
-        block_mat = data.site_xmat[self._block_site]
+        # From qpos, not site_xpos: after mjx.step the kinematics are one substep (0.01 s) stale.
+        # Both sites sit at their body origins; the block's joints give its position and quaternion.
+        grip = data.qpos[self._grip_qpos : self._grip_qpos + 3]
+        block = self._block_origin + data.qpos[BLOCK_POSITION]
+        block_mat = matrix_from_quaternion(data.qpos[BLOCK_QUATERNION])
         grip_vel = data.qvel[self._grip_qpos : self._grip_qpos + 3]  # the grip site rides the slides
         block_vel = data.qvel[self._block_dof : self._block_dof + 3]
         block_angvel = block_mat @ data.qvel[self._block_dof + 3 : self._block_dof + 6]  # local -> world
@@ -166,7 +178,7 @@ class _Fetch(ResetFreeEnv):
         data = state.pipeline_state
         action = jnp.clip(action, -1.0, 1.0)
         grip = data.qpos[self._grip_qpos : self._grip_qpos + 3]
-        target = jnp.clip(grip + MAX_DISPLACEMENT * action[:3], WORKSPACE_LOW, WORKSPACE_HIGH)
+        target = jnp.clip(grip + MAX_DISPLACEMENT * action[:3], self.workspace_low, self.workspace_high)
         fingers = data.qpos[self._finger_qpos : self._finger_qpos + 2]
         finger_ctrl = jnp.clip(fingers + action[3], 0.0, FINGER_CTRL_MAX)
         if self.fingers_locked:
@@ -204,10 +216,10 @@ class _Fetch(ResetFreeEnv):
 
     @property
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        grip_low, grip_high = WORKSPACE_LOW - 0.01, WORKSPACE_HIGH + 0.01
+        grip_low, grip_high = self.workspace_low - 0.01, self.workspace_high + 0.01
         # The block stays over the table (walls or slide limits) and cannot rise far above the gripper.
         block_low = np.array([TABLE_LOW[0], TABLE_LOW[1], 0.39])
-        block_high = np.array([TABLE_HIGH[0], TABLE_HIGH[1], WORKSPACE_HIGH[2] + 0.2])
+        block_high = np.array([TABLE_HIGH[0], TABLE_HIGH[1], self.workspace_high[2] + 0.2])
         low = np.concatenate([
             grip_low, block_low, block_low - grip_high, [-0.005, -0.005], [-np.pi] * 3,
             [-0.5] * 3, [-2.0] * 3, [-0.2] * 3, [-0.05] * 2,

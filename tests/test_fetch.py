@@ -174,11 +174,15 @@ def test_block_stays_in_ibc_confinement_box(name):
 
 
 def test_gripper_cannot_leave_workspace(task):
-    _, _, _, _, _, obs = task_rollouts(task)
+    env, _, _, _, _, obs = task_rollouts(task)
     grip = obs[:, :, 0:3]
-    assert np.all(grip >= fetch.WORKSPACE_LOW - 0.003) and np.all(grip <= fetch.WORKSPACE_HIGH + 0.003)
+    low, high = env.workspace_low, env.workspace_high
+    assert np.all(grip >= low - 0.003) and np.all(grip <= high + 0.003), (grip.min((0, 1)), grip.max((0, 1)))
+    # Finger bottoms (1.5 cm below the grip site) above the table; fingers inside the walls / table edges.
+    assert low[2] - 0.015 > 0.4 and np.all(low[:2] - 0.0135 >= fetch.TABLE_LOW - 1e-9)
+    assert np.all(high[:2] + 0.0135 <= fetch.TABLE_HIGH + 1e-9)
     for i, action in zip(CORNER_SCENARIOS, CORNER_ACTIONS, strict=True):
-        corner = np.where(action[:3] > 0, fetch.WORKSPACE_HIGH, fetch.WORKSPACE_LOW)
+        corner = np.where(action[:3] > 0, high, low)
         assert np.abs(grip[i, -1] - corner).max() < 0.005, "the gripper did not reach its corner"
 
 
