@@ -6,12 +6,12 @@ so the arm only follows the gripper; we keep the gripper alone: a body on three 
 with critically damped position actuators (kp 3000, kv 110 for 1.2 kg: ~50 rad/s, like the original
 weld's solref 0.02), gravity-compensated, carrying the two slide fingers with the original finger boxes
 (half sizes 0.0385 x 0.007 x 0.0135), condim 4, friction (1, 0.05, 0.01), contact solimp/solref, range
-[0, 0.05], armature 100, damping 1000 and position actuators kp 30000 with ctrlrange [0, 0.2]. The block is
+[0, 0.05], armature 100, damping 1000 and position actuators kp 30000. The block is
 the original 5 cm cube (mass 2, friction (1, 0.005, 0.0001), condim 3) and the table top is at z 0.4.
 
 Control, as the original: each step the target is the gripper's current position plus 0.05 * a[0:3]
 (the original snaps the mocap to the gripper, then adds the displacement), clipped to the workspace;
-the finger actuators get current finger qpos + a[3] (clipped to [0, 0.2] by the ctrlrange). In `push`
+the finger actuators get current finger qpos + a[3], clipped to [0, 0.05]. In `push`
 the fingers are held closed (IBC's block_gripper: ctrl 0 and finger qpos/qvel zeroed after each step);
 in the other three tasks they work. 0.01 s x 4 substeps = 0.04 s per action (original 0.002 s x 20).
 
@@ -23,6 +23,10 @@ Deviations from the original, on purpose (also in README):
   - floating gripper instead of the arm; the grip site is 1.5 cm above the finger bottoms and the palm
     box is visual only (a block on the table cannot reach it: the grip target is clipped to z >= 0.417,
     so the finger bottoms stay 2 mm above the table and the palm 3 cm above the block);
+  - the gripper follows its target through position actuators on three slides (gravity-compensated),
+    not a mocap weld on a free body: same control rule, no weld constraint rows to solve;
+  - finger targets are clipped to the joint range [0, 0.05], not to the original's ctrlrange [0, 0.2],
+    which drives the fingers ~1.5 cm past their limit when opening (MuJoCo limits are soft);
   - only block-table, block-fingers (and block-walls) collide: the fingers never touch the table or walls;
   - timestep 0.01 x 4 substeps, Newton 6 iterations / 6 line-search steps, pyramidal cone;
   - the finger contact parameters get priority over the block's (no averaging): a held block creeps
@@ -33,8 +37,10 @@ Deviations from the original, on purpose (also in README):
     initial gripper xy, with IBC v2's hardened limit solref/solimp (v1 used the softer defaults);
   - hard variants (MoReFree's, no public code): free block; frictionless walls whose inner faces are the
     table edges (0.6 x 0.7 m, 2.6x IBC's 0.4 x 0.4 box), colliding as planes; block start fixed at
-    (1.43, 0.76) (IBC v2's near-fixed start); push_hard goals block start +- 0.15 on the table;
-    pick_place_hard goals uniform in x, y = block start +- 0.025, z in [0.475, 0.575] (5 x 5 x 10 cm);
+    (1.43, 0.76) (IBC v2's near-fixed start) up to a U(-0.005, 0.005) xy jitter (the setting
+    block_start_noise; 0 makes it exact) so that resets with different keys differ; push_hard goals
+    uniform in the nominal block start +- 0.15 on the table; pick_place_hard goals uniform in
+    x, y = nominal block start +- 0.025, z in [0.475, 0.575] (a 5 x 5 x 10 cm box);
   - initial gripper z: 0.425 (push tasks) and 0.625 (pick-and-place tasks, the original's extra 0.2);
     the original's settled z under MuJoCo 2.x is not known exactly;
   - evaluation goals are full observations: block at the goal, zero velocities, and the gripper 4.5 cm
@@ -254,15 +260,22 @@ class _FetchIBC(_Fetch):
 
 
 class _FetchHard(_Fetch):
-    """MoReFree's versions: free block walled in on the table, fixed block start."""
+    """MoReFree's versions: free block walled in on the table, block start fixed up to a few mm."""
 
     xml_name = "fetch_hard.xml"
-    block_start_low = HARD_BLOCK_START
-    block_start_high = HARD_BLOCK_START
+
+    def __init__(self, eval_episode_length: int = 50, hard_reset_every: int = 100_000,
+                 success_threshold: float = 0.05, block_start_noise: float = 0.005):
+        """block_start_noise: half-width (m) of the uniform xy jitter of the block start (0: fixed)."""
+        if block_start_noise < 0:
+            raise ValueError(f"{self.name}: block_start_noise must be >= 0, got {block_start_noise}")
+        super().__init__(eval_episode_length, hard_reset_every, success_threshold)
+        self.block_start_noise = float(block_start_noise)
+        jitter = np.array([block_start_noise, block_start_noise, 0.0])
+        self.block_start_low, self.block_start_high = HARD_BLOCK_START - jitter, HARD_BLOCK_START + jitter
 
     def _sample_block_start(self, rng: jax.Array) -> jax.Array:
-        del rng  # fixed start
-        return jnp.asarray(HARD_BLOCK_START, jnp.float32)
+        return jax.random.uniform(rng, (3,), minval=self.block_start_low, maxval=self.block_start_high)
 
 
 class FetchPush(_FetchIBC):

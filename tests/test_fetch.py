@@ -148,17 +148,21 @@ def test_pick_place_hard_lifts_into_air_box_and_holds():
 
 @pytest.mark.parametrize("name", ["push_hard", "pick_place_hard"])
 def test_walls_keep_block_on_table(name):
+    """Tolerance: the block centre may pass the rigid-wall position by < 1 cm at impact (one 0.01 s
+    substep of travel) and by < 3 mm while the gripper keeps squeezing it into the wall."""
     _, _, _, _, _, obs = task_rollouts(name)
     inner_low = fetch.TABLE_LOW + 0.025  # block centre against a wall
     inner_high = fetch.TABLE_HIGH - 0.025
     for i, direction in zip(WALL_SCENARIOS, WALL_DIRECTIONS, strict=True):
         block_xy = obs[i, :, 3:5]
-        assert np.all(block_xy >= inner_low - 0.005) and np.all(block_xy <= inner_high + 0.005)
+        assert np.all(block_xy >= inner_low - 0.01) and np.all(block_xy <= inner_high + 0.01)
+        squeezed = block_xy[-100:]
+        assert np.all(squeezed >= inner_low - 0.003) and np.all(squeezed <= inner_high + 0.003)
         assert np.all(obs[i, :, 5] > 0.4), "the block went through the table"
         # It really was driven into the wall it was pushed towards (within 1 cm of touching it).
         axis, sign = int(np.argmax(np.abs(direction))), direction.sum()
         wall = inner_high[axis] if sign > 0 else inner_low[axis]
-        assert np.abs(block_xy[:, axis] - wall).min() < 0.01
+        assert np.abs(block_xy[-100:, axis] - wall).max() < 0.01
 
 
 @pytest.mark.parametrize("name", ["push", "pick_place"])
