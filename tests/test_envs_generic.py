@@ -35,6 +35,7 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
 
 def test_step_traces_once(env_name):
     env = cached_env(env_name)
+    chex.clear_trace_counter()  # chex counts per function name/location, so across env_name params
 
     @jax.jit
     @chex.assert_max_traces(n=1)

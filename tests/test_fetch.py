@@ -191,12 +191,14 @@ def test_gripper_cannot_leave_workspace(task):
 
 
 def test_block_rests_under_zero_action_for_500_steps(task):
-    """Tolerance: 1 mm in position and 0.01 rad in rotation over 500 steps (20 s)."""
+    """Tolerance over 500 steps (20 s): drift < 1 mm, rotation < 0.01 rad; after 10 settling steps,
+    jitter < 2.5 mm/s (1e-4 m per step) linear and < 0.025 rad/s (1e-3 rad per step) angular."""
     _, start, _, _, _, obs = task_rollouts(task)
-    block, rotation = obs[REST_SCENARIO, :, 3:6], obs[REST_SCENARIO, :, 11:14]
-    assert np.abs(block - start[3:6]).max() < 1e-3
-    assert np.abs(rotation).max() < 0.01
-    assert np.abs(obs[REST_SCENARIO, :, 0:3] - start[0:3]).max() < 1e-3, "the gripper drifted"
+    rest = obs[REST_SCENARIO]
+    assert np.abs(rest[:, 3:6] - start[3:6]).max() < 1e-3
+    assert np.abs(rest[:, 11:14]).max() < 0.01
+    assert np.abs(rest[10:, 14:17]).max() < 1e-4 and np.abs(rest[10:, 17:20]).max() < 1e-3
+    assert np.abs(rest[:, 0:3] - start[0:3]).max() < 1e-3, "the gripper drifted"
 
 
 @pytest.mark.parametrize("name", ["pick_place", "push_hard"])
