@@ -17,6 +17,10 @@ _REGISTRY: dict[str, str] = {
     "ant": "envs_mjx.ant:Ant",
     "tabletop": "envs_mjx.tabletop:Tabletop",
     "sawyer_door": "envs_mjx.sawyer_door:SawyerDoor",
+    "push": "envs_mjx.fetch:FetchPush",
+    "pick_place": "envs_mjx.fetch:FetchPickPlace",
+    "push_hard": "envs_mjx.fetch:FetchPushHard",
+    "pick_place_hard": "envs_mjx.fetch:FetchPickPlaceHard",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)
