@@ -25,8 +25,9 @@ def test_lambda_return_three_steps_by_hand(jit):
     reward = jnp.array([1.0, 2.0, 3.0])
     value = jnp.array([10.0, 20.0, 30.0])
     discount = jnp.array([0.5, 0.5, 0.5])
-    fn = jax.jit(lambda_return, static_argnums=4) if jit else lambda_return
-    got = fn(reward, value, discount, jnp.array(40.0), 0.5)
+    fn = jax.jit(lambda_return, static_argnums=3) if jit else lambda_return
+    next_value = jnp.array([20.0, 30.0, 40.0])  # value[1:] then the bootstrap
+    got = fn(reward, next_value, discount, 0.5)
     # t=2: 3 + 0.5*(0.5*40 + 0.5*40) = 23; t=1: 2 + 0.5*(0.5*30 + 0.5*23) = 15.25;
     # t=0: 1 + 0.5*(0.5*20 + 0.5*15.25) = 9.8125
     np.testing.assert_allclose(np.asarray(got), [9.8125, 15.25, 23.0], rtol=1e-6)
@@ -37,8 +38,8 @@ def test_lambda_return_limits_and_random(lam):
     rng = np.random.default_rng(0)
     reward, value = rng.normal(size=5), rng.normal(size=5)
     discount = np.full(5, 0.9)
-    got = np.asarray(lambda_return(jnp.asarray(reward), jnp.asarray(value), jnp.asarray(discount),
-                                   jnp.asarray(2.0), lam))
+    next_value = jnp.asarray(np.append(value[1:], 2.0))
+    got = np.asarray(lambda_return(jnp.asarray(reward), next_value, jnp.asarray(discount), lam))
     np.testing.assert_allclose(got, hand_lambda_return(reward, value, discount, 2.0, lam), rtol=1e-5)
     if lam == 0.0:  # one-step TD targets
         np.testing.assert_allclose(got, reward + 0.9 * np.append(value[1:], 2.0), rtol=1e-5)
@@ -51,7 +52,8 @@ def test_lambda_return_batched_trailing_axis():
     reward = jnp.arange(8.0).reshape(4, 2)
     value = jnp.ones((4, 2))
     discount = jnp.full((4, 2), 0.99)
-    got = lambda_return(reward, value, discount, jnp.zeros(2), 0.95)
+    next_value = jnp.concatenate([value[1:], jnp.zeros((1, 2))])
+    got = lambda_return(reward, next_value, discount, 0.95)
     for n in range(2):
         np.testing.assert_allclose(
             np.asarray(got[:, n]),

@@ -10,15 +10,13 @@ import jax
 import jax.numpy as jnp
 
 
-def lambda_return(
-    reward: jax.Array, value: jax.Array, discount: jax.Array, bootstrap: jax.Array, lambda_: float
-) -> jax.Array:
-    """TD(lambda) targets (T, ...).
+def lambda_return(reward: jax.Array, next_value: jax.Array, discount: jax.Array, lambda_: float) -> jax.Array:
+    """TD(lambda) targets (T, ...), rlax style (`next_value[t]` is the value of the state after step t).
 
-    target_t = reward_t + discount_t * ((1 - lambda) * value_{t+1} + lambda * target_{t+1}),
-    with value_T = target_T = bootstrap. `value` (T, ...) holds value_t; only value_1.. are used.
+    target_t = reward_t + discount_t * ((1 - lambda) * next_value_t + lambda * target_{t+1}),
+    bootstrapped with target_T = next_value_{T-1}. DreamerV2's call on an imagined sequence of H+1 states
+    is lambda_return(reward[:-1], value[1:], discount[:-1], lambda_).
     """
-    next_value = jnp.concatenate([value[1:], bootstrap[None]], 0)
     inputs = reward + discount * next_value * (1.0 - lambda_)
 
     def backward(target_next, step):
@@ -26,7 +24,7 @@ def lambda_return(
         target = step_input + step_discount * lambda_ * target_next
         return target, target
 
-    _, targets = jax.lax.scan(backward, bootstrap, (inputs, discount), reverse=True)
+    _, targets = jax.lax.scan(backward, next_value[-1], (inputs, discount), reverse=True)
     return targets
 
 
