@@ -23,7 +23,7 @@ def hand_lambda_return(reward, value, discount, bootstrap, lam):
 @pytest.mark.parametrize("jit", [False, True])
 def test_lambda_return_three_steps_by_hand(jit):
     reward = jnp.array([1.0, 2.0, 3.0])
-    value = jnp.array([10.0, 20.0, 30.0])
+    # value = [10, 20, 30]: value_0 is never used by a lambda-return.
     discount = jnp.array([0.5, 0.5, 0.5])
     fn = jax.jit(lambda_return, static_argnums=3) if jit else lambda_return
     next_value = jnp.array([20.0, 30.0, 40.0])  # value[1:] then the bootstrap
