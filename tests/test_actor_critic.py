@@ -66,3 +66,23 @@ def test_goal_conditioned_actor_reduces_distance_to_random_goals():
     print("final distance", before, "->", after)
     assert after < 0.5 * before, (before, after)
     assert np.asarray(metrics["gc/reward"])[-10:].mean() > np.asarray(metrics["gc/reward"])[:10].mean()
+
+
+def test_trunc_normal_entropy_and_reparameterised_sample():
+    from scipy import stats
+
+    from morefree_jax.networks import TruncNormal
+
+    loc, scale = np.array([0.3, -0.9, 0.0]), np.array([0.4, 0.2, 2.1])
+    dist = TruncNormal(jnp.asarray(loc), jnp.asarray(scale))
+    expected = sum(stats.truncnorm((-1 - m) / s, (1 - m) / s, loc=m, scale=s).entropy()
+                   for m, s in zip(loc, scale, strict=True))
+    np.testing.assert_allclose(float(dist.entropy()), expected, rtol=1e-4)
+
+    def mean_sample(shift):
+        dist = TruncNormal(jnp.full(20_000, shift), jnp.full(20_000, 0.3))
+        return jnp.mean(dist.sample(jax.random.PRNGKey(0)))
+
+    assert 0.9 < float(jax.grad(mean_sample)(0.0)) < 1.1  # d E[x] / d loc ~ 1 away from the bounds
+    samples = TruncNormal(jnp.full(20_000, 0.9), jnp.full(20_000, 0.5)).sample(jax.random.PRNGKey(1))
+    assert float(samples.max()) < 1.0 and float(samples.min()) > -1.0

@@ -5,7 +5,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from morefree_jax.config import ExploreConfig, OptimizerConfig
-from morefree_jax.explore import disagreement, ensemble_update, init_ensemble, make_ensemble
+from morefree_jax.explore import (
+    disagreement,
+    ensemble_predict,
+    ensemble_predict_reference,
+    ensemble_update,
+    init_ensemble,
+    make_ensemble,
+)
 from morefree_jax.networks import Latent
 
 F, A, S = 10, 2, 4
@@ -20,6 +27,9 @@ def test_disagreement_zero_iff_members_share_parameters():
     np.testing.assert_allclose(np.asarray(disagreement(ens, shared, feat, action)), 0.0, atol=1e-6)
     distinct = disagreement(ens, state.params, feat, action)
     assert distinct.shape == (7, 3) and float(jnp.min(distinct)) > 1e-3
+    inputs = jnp.concatenate([feat, action], -1)
+    np.testing.assert_allclose(np.asarray(ensemble_predict(ens, state.params, inputs)),
+                               np.asarray(ensemble_predict_reference(ens, state.params, inputs)), atol=1e-5)
 
 
 def test_ensemble_update_lowers_loss_and_keeps_members_distinct():

@@ -45,7 +45,6 @@ from morefree_jax.imagination import (
     sample_imagination_goals,
 )
 from morefree_jax.networks import (
-    RSSM,
     Latent,
     NetState,
     TruncNormal,
@@ -181,28 +180,40 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
         target, _ = returns_of(explore_ac, state.explore_critic.target, trajectory, reward, None)
         return reward, target
 
-    def train_step(state: AgentState, batch: Batch, goals: GoalPools, key: jax.Array):
-        """All five updates on one replay batch (B, T, ...) -> (state, metrics)."""
-        key_wm, key_starts, key_goals, key_gc, key_dist, key_expl = jax.random.split(key, 6)
-        wm_state, posterior, wm_metrics = world_model_update(wm, wm_opt, state.wm, batch, key_wm)
-        params = wm_state.params
+    def world_model_part(state: AgentState, batch: Batch, key: jax.Array):
+        """World-model update -> (wm state, posterior of the batch, metrics)."""
+        return world_model_update(wm, wm_opt, state.wm, batch, key)
+
+    def goal_conditioned_part(state: AgentState, wm_params, posterior, batch: Batch, goals: GoalPools,
+                              key_starts, key):
+        """Goal-conditioned actor-critic and temporal distance -> (gc actor, gc critic, distance, metrics).
+
+        `key_starts` picks the imagination starts (shared with the exploration part, as in PEG)."""
+        key_goals, key_gc, key_dist = jax.random.split(key, 3)
         starts, sequence_id, replay_obs = _imagination_starts(posterior.latent, batch.obs, key_starts)
         goal_obs, source = sample_imagination_goals(key_goals, replay_obs, goals, config.alpha,
                                                     sequence_id.shape[0])
-        goal_embed = encode(wm, params, goal_obs)
+        goal_embed = encode(wm, wm_params, goal_obs)
         distance_projection = goal_projection(dist, state.distance.params, goal_embed)
 
         def goal_reward(trajectory: Trajectory):
-            embeds = wm.embed_head.apply(params["embed_head"], trajectory.feat)
+            embeds = wm.embed_head.apply(wm_params["embed_head"], trajectory.feat)
             d = dist.net.apply(state.distance.params, embeds, distance_projection[None],
                                method=dist.net.from_projection)[..., 0]
             return -d, embeds
 
         gc_actor, gc_critic, imagined, gc_metrics = actor_critic_update(
-            gc, state.gc_actor, state.gc_critic, state.updates, wm.rssm, params["rssm"], goal_reward, starts,
-            goal_embed, key_gc, "gc")
+            gc, state.gc_actor, state.gc_critic, state.updates, wm.rssm, wm_params["rssm"], goal_reward,
+            starts, goal_embed, key_gc, "gc")
         distance_state, distance_metrics = distance_update(dist, state.distance, imagined.reward_extras,
                                                            sequence_id, key_dist)
+        metrics = {**gc_metrics, **distance_metrics, "gc/goal_eval_frac": jnp.mean(source == SOURCE_EVAL),
+                   "gc/goal_initial_frac": jnp.mean(source == SOURCE_INITIAL)}
+        return gc_actor, gc_critic, distance_state, metrics
+
+    def explore_part(state: AgentState, wm_params, posterior, batch: Batch, key_starts, key_expl):
+        """Plan2Explore ensemble and exploration actor-critic -> (ensemble, actor, critic, metrics)."""
+        starts, _, _ = _imagination_starts(posterior.latent, batch.obs, key_starts)
         ensemble_state, ensemble_metrics = ensemble_update(ens, state.ensemble, posterior.latent,
                                                            jnp.swapaxes(batch.action, 0, 1))
 
@@ -210,14 +221,21 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
             return disagreement(ens, ensemble_state.params, trajectory.feat, trajectory.action), None
 
         explore_actor, explore_critic, _, explore_metrics = actor_critic_update(
-            explore_ac, state.explore_actor, state.explore_critic, state.updates, wm.rssm, params["rssm"],
+            explore_ac, state.explore_actor, state.explore_critic, state.updates, wm.rssm, wm_params["rssm"],
             explore_reward, starts, None, key_expl, "explore")
+        return ensemble_state, explore_actor, explore_critic, {**ensemble_metrics, **explore_metrics}
+
+    def train_step(state: AgentState, batch: Batch, goals: GoalPools, key: jax.Array):
+        """All five updates on one replay batch (B, T, ...) -> (state, metrics)."""
+        key_wm, key_starts, key_gc, key_expl = jax.random.split(key, 4)
+        wm_state, posterior, wm_metrics = world_model_part(state, batch, key_wm)
+        gc_actor, gc_critic, distance_state, gc_metrics = goal_conditioned_part(
+            state, wm_state.params, posterior, batch, goals, key_starts, key_gc)
+        ensemble_state, explore_actor, explore_critic, explore_metrics = explore_part(
+            state, wm_state.params, posterior, batch, key_starts, key_expl)
         new_state = AgentState(wm_state, gc_actor, gc_critic, distance_state, ensemble_state, explore_actor,
                                explore_critic, state.updates + 1)
-        metrics = {**wm_metrics, **gc_metrics, **distance_metrics, **ensemble_metrics, **explore_metrics,
-                   "gc/goal_eval_frac": jnp.mean(source == SOURCE_EVAL),
-                   "gc/goal_initial_frac": jnp.mean(source == SOURCE_INITIAL)}
-        return new_state, metrics
+        return new_state, {**wm_metrics, **gc_metrics, **explore_metrics}
 
     def _imagination_starts(latent: Latent, obs, key):
         """Flattened posterior starts (N, ...), their replay row (N,), and the batch observations (T*B, O)."""
@@ -231,7 +249,9 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
             flat, sequence_id = jax.tree.map(lambda x: x[index], flat), sequence_id[index]
         return flat, sequence_id, replay_obs
 
+    # Building blocks, for benchmarks and notebooks: the modules and the three parts of train_step.
     modules = {"world_model": wm, "gc": gc, "explore_ac": explore_ac, "distance": dist, "ensemble": ens,
-               "rssm": RSSM}
+               "world_model_part": world_model_part, "goal_conditioned_part": goal_conditioned_part,
+               "explore_part": explore_part}
     return Agent(init, initial_latent, act, train_step, goal_distance, imagine_to_goals, exploration_value,
                  config, spec, modules)
