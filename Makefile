@@ -5,6 +5,7 @@ ENV ?= point_umaze
 AGENT ?= morefree
 PRESET ?= cpu
 SEED ?= 0
+TEST_WORKERS ?= 2
 
 .PHONY: install test test-slow lint bench clean
 
@@ -14,7 +15,7 @@ install:
 	$(PY) -m pip install --quiet -e ".[dev]"
 
 test:
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
 
 test-slow:
 	$(PY) -m pytest -m slow -q
