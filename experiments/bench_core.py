@@ -1,0 +1,148 @@
+"""Benchmark of the learning core: compile time, ms per train_step and per component, ms per act,
+achieved FLOP/s of train_step (XLA cost analysis) next to a matmul peak measured in the same run.
+
+    PYTHONPATH=src:. python -c "import experiments.bench_core as b; print(b.run())"
+    PYTHONPATH=src:. python experiments/bench_core.py [--presets paper,cpu] [--reps 3]
+
+Shapes: `paper` with ant shapes (obs 29, action 8, batch 45 x 50, the reference TF2 measurement);
+`cpu` with PointUMaze shapes (obs 7, action 2). Rows: {"section", "name", "value", "unit", "note"}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+from morefree_jax.agent import MODE_GOAL, EnvSpec, make_agent
+from morefree_jax.config import preset
+from morefree_jax.imagination import GoalPools
+from morefree_jax.world_model import Batch
+
+SECTION = "core"
+SHAPES = {"paper": EnvSpec(29, 8, (0, 1)), "cpu": EnvSpec(7, 2, (0, 1)), "debug": EnvSpec(7, 2, (0, 1))}
+REFERENCE_TRAIN_S = 6.85  # original TF2 agent, paper config, ant shapes, this machine (issue 3)
+
+
+def _row(name, value, unit, note=""):
+    return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
+
+
+def _time(fn, *args, reps: int) -> float:
+    """Median seconds per call of an already compiled function."""
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return sorted(times)[len(times) // 2]
+
+
+def matmul_peak(n: int = 2048, reps: int = 5) -> float:
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n))
+    f = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(f(a))
+    return 2 * n**3 / _time(f, a, reps=reps)
+
+
+def _inputs(name: str):
+    cfg, spec = preset(name), SHAPES[name]
+    agent = make_agent(cfg, spec)
+    b, t = cfg.replay.batch, cfg.replay.length
+    key_obs, key_act = jax.random.split(jax.random.PRNGKey(1))
+    batch = Batch(jax.random.normal(key_obs, (b, t, spec.obs_size)),
+                  jax.random.uniform(key_act, (b, t, spec.action_size), minval=-1, maxval=1),
+                  jnp.zeros((b, t), bool).at[:, 0].set(True))
+    pools = GoalPools(jnp.ones((4, spec.obs_size)), jnp.zeros((1, spec.obs_size)))
+    return agent, agent.init(jax.random.PRNGKey(0)), batch, pools
+
+
+def bench_train(name: str, reps: int, peak: float) -> list[dict]:
+    agent, state, batch, pools = _inputs(name)
+    key = jax.random.PRNGKey(2)
+    start = time.perf_counter()
+    compiled = jax.jit(agent.train_step).lower(state, batch, pools, key).compile()
+    compile_s = time.perf_counter() - start
+    flops = compiled.cost_analysis().get("flops", float("nan"))
+    compiled(state, batch, pools, key)  # warm-up
+    step_s = _time(compiled, state, batch, pools, key, reps=reps)
+    rows = [
+        _row(f"{name}/train_step_compile", compile_s, "s"),
+        _row(f"{name}/train_step", step_s * 1e3, "ms", "all five learners"),
+        _row(f"{name}/train_step_gflop", flops / 1e9, "GFLOP", "XLA cost analysis"),
+        _row(f"{name}/train_step_flops", flops / step_s / 1e9, "GFLOP/s", f"{flops / step_s / peak:.0%} of peak"),
+    ]
+    if name == "paper":
+        rows.append(_row("paper/ratio_to_tf2", step_s / REFERENCE_TRAIN_S, "x", "vs 6.85 s TF2 (lower is better)"))
+    return rows + bench_components(name, agent, state, batch, pools, reps)
+
+
+def bench_components(name, agent, state, batch, pools, reps) -> list[dict]:
+    parts = agent.modules
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    wm_part = jax.jit(parts["world_model_part"])
+    wm_state, posterior, _ = wm_part(state, batch, keys[0])
+    gc_part = jax.jit(parts["goal_conditioned_part"])
+    explore_part = jax.jit(parts["explore_part"])
+    gc_args = (state, wm_state.params, posterior, batch, pools, keys[1], keys[2])
+    explore_args = (state, wm_state.params, posterior, batch, keys[1], keys[3])
+    jax.block_until_ready(gc_part(*gc_args))
+    jax.block_until_ready(explore_part(*explore_args))
+    return [
+        _row(f"{name}/world_model", _time(wm_part, state, batch, keys[0], reps=reps) * 1e3, "ms"),
+        _row(f"{name}/gc_actor_critic+distance", _time(gc_part, *gc_args, reps=reps) * 1e3, "ms"),
+        _row(f"{name}/ensemble+explore_actor_critic", _time(explore_part, *explore_args, reps=reps) * 1e3, "ms"),
+    ]
+
+
+def bench_act(name: str, steps: int = 1000) -> list[dict]:
+    """One jitted single-env act call, and the per-step cost inside a lax.scan (the fused collection)."""
+    agent, state, _, _ = _inputs(name)
+    spec = agent.spec
+    obs, goal = jnp.ones(spec.obs_size), jnp.zeros(spec.obs_size)
+    latent, prev = agent.initial_latent(()), jnp.zeros(spec.action_size)
+    act = jax.jit(agent.act, static_argnums=6)
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(act(state, latent, prev, obs, goal, key, MODE_GOAL))
+    call_s = _time(act, state, latent, prev, obs, goal, key, MODE_GOAL, reps=200)
+
+    @jax.jit
+    def rollout(state, key):
+        def body(carry, key):
+            latent, prev = carry
+            action, latent = agent.act(state, latent, prev, obs + prev.sum(), goal, key, MODE_GOAL)
+            return (latent, action), action
+
+        return jax.lax.scan(body, (latent, prev), jax.random.split(key, steps))[1]
+
+    jax.block_until_ready(rollout(state, key))
+    scan_s = _time(rollout, state, key, reps=3) / steps
+    return [_row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call incl. dispatch"),
+            _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
+
+
+def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: int = 3) -> list[dict]:
+    peak = matmul_peak()
+    rows = [_row("matmul_peak_2048", peak / 1e9, "GFLOP/s", "f32 2048^3 under jit, same run")]
+    if quick:
+        return rows + bench_act("debug", steps=100)
+    for name in presets:
+        rows += bench_act(name)
+        rows += bench_train(name, reps if name != "paper" else max(1, reps - 1), peak)
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--presets", default="paper,cpu")
+    parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    for row in run(args.quick, tuple(args.presets.split(",")), args.reps):
+        print(f"{row['name']:40s} {row['value']:12.3f} {row['unit']:8s} {row['note']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""Actor-critic in imagination (DreamerV2/LEXA inside PEG), shared by the goal-conditioned and the
+exploration learner.
+
+Actor: trunc-normal head, dynamics gradients through the imagined trajectory,
+  loss = -mean(weight[:-2] * (target[1:] + entropy_scale * entropy[:-1])).
+Critic: Normal(., 1) on stop-gradient features, loss = mean(weight[:-1] * 0.5 * (v - sg(target))^2).
+Targets: TD(lambda) with the target critic, constant discount, bootstrapped from the last state.
+The target critic is a hard copy of the critic every `target_every` updates (the first update copies).
+The goal-conditioned learner feeds the goal embedding as the networks' context; its projection through
+the first layer is computed once per trajectory (networks.ContextMLP).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from morefree_jax.config import ActorCriticConfig
+from morefree_jax.imagination import Trajectory, imagine
+from morefree_jax.networks import (
+    RSSM,
+    ContextMLP,
+    Latent,
+    NetState,
+    TruncNormal,
+    actor_distribution,
+    apply_gradients,
+    init_net_state,
+    make_optimizer,
+)
+from morefree_jax.returns import discount_weights, lambda_return
+
+
+class ActorCritic(NamedTuple):
+    actor: ContextMLP
+    critic: ContextMLP
+    config: ActorCriticConfig
+    actor_opt: optax.GradientTransformation
+    critic_opt: optax.GradientTransformation
+
+
+class Imagined(NamedTuple):
+    """Stop-gradient products of the actor's pass, reused by the critic and the other learners."""
+
+    trajectory: Trajectory
+    target: jax.Array  # (H, N)
+    weight: jax.Array  # (H+1, N)
+    reward_extras: object  # whatever the reward function returned besides the reward
+
+
+def make_actor_critic(cfg: ActorCriticConfig, action_size: int, use_context: bool) -> ActorCritic:
+    return ActorCritic(
+        actor=ContextMLP(cfg.actor_layers, 2 * action_size, use_context),
+        critic=ContextMLP(cfg.critic_layers, 1, use_context),
+        config=cfg,
+        actor_opt=make_optimizer(cfg.actor_opt),
+        critic_opt=make_optimizer(cfg.critic_opt),
+    )
+
+
+def init_actor_critic(ac: ActorCritic, key, feat_size: int, context_size: int) -> tuple[NetState, NetState]:
+    key_actor, key_critic = jax.random.split(key)
+    feat = jnp.zeros((1, feat_size))
+    context = jnp.zeros((1, context_size)) if ac.actor.use_context else None
+    actor_params = ac.actor.init(key_actor, feat, context)
+    critic_params = ac.critic.init(key_critic, feat, context)
+    return (init_net_state(actor_params, ac.actor_opt),
+            init_net_state(critic_params, ac.critic_opt, with_target=True))
+
+
+def project(net: ContextMLP, params, context: jax.Array | None) -> jax.Array | None:
+    """The context's first-layer projection (N, hidden), or None for context-free networks."""
+    return None if context is None else net.apply(params, context, method=ContextMLP.project)
+
+
+def policy(ac: ActorCritic, actor_params, feat: jax.Array, projection) -> TruncNormal:
+    raw = ac.actor.apply(actor_params, feat, projection, method=ContextMLP.from_projection)
+    return actor_distribution(raw, ac.config.actor_min_std)
+
+
+def value(ac: ActorCritic, critic_params, feat: jax.Array, projection) -> jax.Array:
+    return ac.critic.apply(critic_params, feat, projection, method=ContextMLP.from_projection)[..., 0]
+
+
+RewardFn = Callable[[Trajectory], tuple[jax.Array, object]]  # -> reward (H+1, N), extras
+
+
+def imagine_with(ac: ActorCritic, actor_params, rssm: RSSM, rssm_params, start: Latent,
+                 context: jax.Array | None, key: jax.Array) -> Trajectory:
+    """The learner's policy rolled out in the model for `config.horizon` steps from `start` (N, ...)."""
+    actor_projection = project(ac.actor, actor_params, context)
+    return imagine(rssm, rssm_params, lambda f: policy(ac, actor_params, f, actor_projection), start,
+                   ac.config.horizon, key)
+
+
+def returns_of(ac: ActorCritic, target_params, trajectory: Trajectory, reward: jax.Array,
+               context: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+    """TD(lambda) targets (H, N) and weights (H+1, N) of a trajectory under the target critic."""
+    cfg = ac.config
+    next_value = value(ac, target_params, trajectory.feat[1:], _time_broadcast(
+        project(ac.critic, target_params, context)))
+    discount = jnp.full(reward.shape, cfg.discount)
+    target = lambda_return(reward[:-1], next_value, discount[:-1], cfg.lambda_)
+    return target, discount_weights(discount)
+
+
+def _time_broadcast(projection):
+    return None if projection is None else projection[None]
+
+
+def actor_loss(ac: ActorCritic, actor_params, target_params, rssm: RSSM, rssm_params, reward_fn: RewardFn,
+               start: Latent, context: jax.Array | None, key: jax.Array):
+    """Imagines from `start` (N, ...) with the actor and returns (loss, (Imagined, metrics))."""
+    sg = jax.lax.stop_gradient
+    trajectory = imagine_with(ac, actor_params, rssm, rssm_params, start, context, key)
+    reward, extras = reward_fn(trajectory)
+    target, weight = returns_of(ac, target_params, trajectory, reward, context)
+    entropy = trajectory.policy.entropy()  # (H, N) at states 0..H-1
+    objective = target[1:] + ac.config.entropy * entropy[:-1]
+    loss = -jnp.mean(sg(weight[:-2]) * objective)
+    metrics = {
+        "actor_loss": loss, "actor_entropy": jnp.mean(entropy), "reward": jnp.mean(reward[:-1]),
+        "target": jnp.mean(target), "action_abs": jnp.mean(jnp.abs(trajectory.action[1:])),
+    }
+    imagined = Imagined(sg(trajectory), sg(target), sg(weight), sg(extras))
+    return loss, (imagined, metrics)
+
+
+def critic_loss(ac: ActorCritic, critic_params, imagined: Imagined, context: jax.Array | None):
+    v = value(ac, critic_params, imagined.trajectory.feat[:-1],
+              _time_broadcast(project(ac.critic, critic_params, context)))
+    loss = jnp.mean(imagined.weight[:-1] * 0.5 * jnp.square(v - imagined.target))
+    return loss, {"critic_loss": loss, "value": jnp.mean(v)}
+
+
+def actor_critic_update(ac: ActorCritic, actor: NetState, critic: NetState, updates: jax.Array,
+                        rssm: RSSM, rssm_params, reward_fn: RewardFn, start: Latent,
+                        context: jax.Array | None, key: jax.Array, prefix: str):
+    """One actor and one critic step, then the periodic target copy.
+
+    -> (actor, critic, Imagined, metrics). `updates` counts previous updates (copy when divisible).
+    """
+    actor_grad = jax.value_and_grad(
+        lambda p: actor_loss(ac, p, critic.target, rssm, rssm_params, reward_fn, start, context, key),
+        has_aux=True)
+    (_, (imagined, actor_metrics)), grads = actor_grad(actor.params)
+    actor, actor_norm = apply_gradients(actor, grads, ac.actor_opt)
+    critic_grad = jax.value_and_grad(lambda p: critic_loss(ac, p, imagined, context), has_aux=True)
+    (_, critic_metrics), grads = critic_grad(critic.params)
+    critic, critic_norm = apply_gradients(critic, grads, ac.critic_opt)
+    copy = (updates % ac.config.target_every) == 0
+    target = jax.tree.map(lambda new, old: jnp.where(copy, new, old), critic.params, critic.target)
+    critic = critic.replace(target=target)
+    metrics = {**actor_metrics, **critic_metrics, "actor_grad_norm": actor_norm,
+               "critic_grad_norm": critic_norm}
+    return actor, critic, imagined, {f"{prefix}/{k}": v for k, v in metrics.items()}

@@ -1,0 +1,249 @@
+"""Networks of the agent as Flax linen modules: MLPs, the LayerNorm GRU, the RSSM cell, the actor head.
+
+Modules are used through `init`/`apply` (state holds only parameter pytrees). Two structural choices keep
+the math of PEG/DreamerV2 and remove redundant work:
+- A network whose input is concat(x, context) (actor/critic on feat+goal, distance on state+goal, the
+  posterior on deter+embed) has its first layer split into Dense(x) + Dense(context, no bias): the same
+  function class, but the context projection is computed once per goal / per embedding instead of at every
+  imagined step.
+- The RSSM exposes its pieces (`deter_step`, `prior_stats`, `posterior_stats`) so sequence code can run
+  only the recurrent part inside `lax.scan` and the rest batched over all time steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import flax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import optax
+
+from morefree_jax.config import OptimizerConfig
+
+HALF_LOG_2PI_E = 0.5 * jnp.log(2.0 * jnp.pi * jnp.e)
+
+
+class Latent(NamedTuple):
+    """RSSM state: deter (..., D), stoch (..., S)."""
+
+    deter: jax.Array
+    stoch: jax.Array
+
+
+class Gaussian(NamedTuple):
+    """Diagonal Gaussian statistics (..., S)."""
+
+    mean: jax.Array
+    std: jax.Array
+
+
+def feature(latent: Latent) -> jax.Array:
+    """feat = concat(stoch, deter) (..., S + D)."""
+    return jnp.concatenate([latent.stoch, latent.deter], -1)
+
+
+def sigmoid2_std(x: jax.Array, min_std: float) -> jax.Array:
+    """DreamerV2 "sigmoid2" std transform: 2 * sigmoid(x / 2) + min_std."""
+    return 2.0 * jax.nn.sigmoid(x / 2.0) + min_std
+
+
+def gaussian_kl(lhs: Gaussian, rhs: Gaussian) -> jax.Array:
+    """KL(lhs || rhs) of diagonal Gaussians, summed over the last axis."""
+    var_ratio = jnp.square(lhs.std / rhs.std)
+    mahalanobis = jnp.square((lhs.mean - rhs.mean) / rhs.std)
+    return 0.5 * jnp.sum(var_ratio + mahalanobis - 1.0 - jnp.log(var_ratio), -1)
+
+
+class MLP(nn.Module):
+    """ELU MLP; optional linear output layer."""
+
+    layers: Sequence[int]
+    out: int | None = None
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for width in self.layers:
+            x = nn.elu(nn.Dense(width)(x))
+        if self.out is not None:
+            x = nn.Dense(self.out)(x)
+        return x
+
+
+class ContextMLP(nn.Module):
+    """ELU MLP on concat(x, context) with the context's share of the first layer computed separately.
+
+    `project(context)` once, then `from_projection(x, projection)` for every x that shares the context.
+    With `use_context=False` it is a plain MLP on x (the exploration actor and critic).
+    """
+
+    layers: Sequence[int]
+    out: int
+    use_context: bool = True
+
+    def setup(self):
+        self.first = nn.Dense(self.layers[0])
+        if self.use_context:
+            self.context = nn.Dense(self.layers[0], use_bias=False)
+        self.hidden = [nn.Dense(width) for width in self.layers[1:]]
+        self.head = nn.Dense(self.out)
+
+    def project(self, context: jax.Array) -> jax.Array:
+        return self.context(context)
+
+    def from_projection(self, x: jax.Array, projection: jax.Array | None) -> jax.Array:
+        h = self.first(x)
+        if projection is not None:
+            h = h + projection
+        h = nn.elu(h)
+        for layer in self.hidden:
+            h = nn.elu(layer(h))
+        return self.head(h)
+
+    def __call__(self, x: jax.Array, context: jax.Array | None = None) -> jax.Array:
+        projection = self.project(context) if self.use_context else None
+        return self.from_projection(x, projection)
+
+
+class LayerNormGRU(nn.Module):
+    """GRU with LayerNorm over the 3*deter pre-activations and update bias -1 (DreamerV2)."""
+
+    size: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array, state: jax.Array) -> jax.Array:
+        parts = nn.Dense(3 * self.size, use_bias=False)(jnp.concatenate([x, state], -1))
+        parts = nn.LayerNorm(epsilon=1e-3)(parts)
+        reset, cand, update = jnp.split(parts, 3, -1)
+        cand = jnp.tanh(jax.nn.sigmoid(reset) * cand)
+        update = jax.nn.sigmoid(update - 1.0)
+        return update * cand + (1.0 - update) * state
+
+
+class RSSM(nn.Module):
+    """Recurrent state-space model with a Gaussian stochastic state (PEG: deter 200, hidden 200, stoch 50)."""
+
+    deter: int
+    hidden: int
+    stoch: int
+    min_std: float = 0.1
+
+    def setup(self):
+        self.img_in = nn.Dense(self.hidden)
+        self.gru = LayerNormGRU(self.deter)
+        self.img_out = nn.Dense(self.hidden)
+        self.img_stats = nn.Dense(2 * self.stoch)
+        self.obs_deter = nn.Dense(self.hidden)
+        self.obs_embed = nn.Dense(self.hidden, use_bias=False)
+        self.obs_stats = nn.Dense(2 * self.stoch)
+
+    def _stats(self, raw: jax.Array) -> Gaussian:
+        mean, std = jnp.split(raw, 2, -1)
+        return Gaussian(mean, sigmoid2_std(std, self.min_std))
+
+    def deter_step(self, prev: Latent, action: jax.Array) -> jax.Array:
+        """The recurrent part of img_step: new deter from (prev stoch, prev deter, action)."""
+        x = nn.elu(self.img_in(jnp.concatenate([prev.stoch, action], -1)))
+        return self.gru(x, prev.deter)
+
+    def prior_stats(self, deter: jax.Array) -> Gaussian:
+        return self._stats(self.img_stats(nn.elu(self.img_out(deter))))
+
+    def embed_projection(self, embed: jax.Array) -> jax.Array:
+        """The embedding's share of the posterior's first layer (computable for all steps at once)."""
+        return self.obs_embed(embed)
+
+    def posterior_stats(self, deter: jax.Array, embed_projection: jax.Array) -> Gaussian:
+        return self._stats(self.obs_stats(nn.elu(self.obs_deter(deter) + embed_projection)))
+
+    def img_step(self, prev: Latent, action: jax.Array, noise: jax.Array) -> tuple[Latent, Gaussian]:
+        """Prior step; noise (..., S) standard normal gives the reparameterised sample."""
+        deter = self.deter_step(prev, action)
+        prior = self.prior_stats(deter)
+        return Latent(deter, prior.mean + prior.std * noise), prior
+
+    def obs_step(self, prev: Latent, action: jax.Array, embed: jax.Array, noise: jax.Array):
+        """Posterior step -> (posterior latent, posterior stats, prior stats)."""
+        deter = self.deter_step(prev, action)
+        post = self.posterior_stats(deter, self.embed_projection(embed))
+        return Latent(deter, post.mean + post.std * noise), post, self.prior_stats(deter)
+
+    def __call__(self, prev: Latent, action: jax.Array, embed: jax.Array, noise: jax.Array):
+        return self.obs_step(prev, action, embed, noise)
+
+
+def zero_latent(deter: int, stoch: int, batch_shape: tuple[int, ...] = ()) -> Latent:
+    return Latent(jnp.zeros((*batch_shape, deter)), jnp.zeros((*batch_shape, stoch)))
+
+
+class TruncNormal(NamedTuple):
+    """Normal(loc, scale) truncated to [-1, 1] (the DreamerV2/PEG `trunc_normal` actor distribution)."""
+
+    loc: jax.Array
+    scale: jax.Array
+
+    def _bounds(self):
+        alpha = (-1.0 - self.loc) / self.scale
+        beta = (1.0 - self.loc) / self.scale
+        return alpha, beta
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        """Reparameterised inverse-CDF sample, clipped to [-1+1e-6, 1-1e-6] with a straight-through grad."""
+        alpha, beta = self._bounds()
+        z = jax.random.truncated_normal(key, alpha, beta, self.loc.shape)
+        x = self.loc + self.scale * z
+        clipped = jnp.clip(x, -1.0 + 1e-6, 1.0 - 1e-6)
+        return x + jax.lax.stop_gradient(clipped - x)
+
+    def mode(self) -> jax.Array:
+        return self.loc
+
+    def entropy(self) -> jax.Array:
+        """Entropy summed over action dimensions (closed form of the truncated normal)."""
+        alpha, beta = self._bounds()
+        mass = jax.scipy.special.ndtr(beta) - jax.scipy.special.ndtr(alpha)
+        pdf = jax.scipy.stats.norm.pdf
+        per_dim = (
+            HALF_LOG_2PI_E + jnp.log(self.scale * mass) + (alpha * pdf(alpha) - beta * pdf(beta)) / (2 * mass)
+        )
+        return jnp.sum(per_dim, -1)
+
+
+def actor_distribution(raw: jax.Array, min_std: float) -> TruncNormal:
+    """Actor head output (..., 2A) -> TruncNormal(tanh(mean), 2*sigmoid(std/2) + min_std)."""
+    mean, std = jnp.split(raw, 2, -1)
+    return TruncNormal(jnp.tanh(mean), sigmoid2_std(std, min_std))
+
+
+@flax.struct.dataclass
+class NetState:
+    """Parameters, optimiser state and (for critics) the target copy of one learner."""
+
+    params: Any
+    opt_state: Any
+    target: Any = None
+
+
+def make_optimizer(cfg: OptimizerConfig) -> optax.GradientTransformation:
+    """DreamerV2's optimiser: global-norm clip, Adam(lr, eps), then decoupled decay p <- p - wd * p.
+
+    The decay is multiplicative and not scaled by the learning rate, applied to every parameter (PEG).
+    """
+    return optax.chain(
+        optax.clip_by_global_norm(cfg.clip),
+        optax.adam(cfg.lr, eps=cfg.eps),
+        optax.add_decayed_weights(-cfg.weight_decay),
+    )
+
+
+def init_net_state(params, optimizer: optax.GradientTransformation, with_target: bool = False) -> NetState:
+    return NetState(params, optimizer.init(params), params if with_target else None)
+
+
+def apply_gradients(state: NetState, grads, optimizer: optax.GradientTransformation) -> tuple[NetState, dict]:
+    """One optimiser step; returns the new state and the pre-clip gradient norm."""
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    return state.replace(params=params, opt_state=opt_state), optax.global_norm(grads)

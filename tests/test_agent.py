@@ -1,0 +1,110 @@
+"""Agent: train_step traces once, keeps the state's structure, is deterministic, vmaps over seeds; act."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from morefree_jax.agent import MODE_DETERMINISTIC, MODE_EXPLORE, MODE_GOAL, EnvSpec, make_agent
+from morefree_jax.config import preset
+from morefree_jax.imagination import GoalPools
+from tests.core_helpers import fixed_batch
+
+SPEC = EnvSpec(obs_size=4, action_size=2, goal_dims=(0, 1))
+TRACES = {"train_step": 0, "act": 0}
+
+
+@functools.cache
+def setup():
+    cfg = preset("debug")
+    agent = make_agent(cfg, SPEC)
+
+    def counted_train_step(*args):
+        TRACES["train_step"] += 1
+        return agent.train_step(*args)
+
+    def counted_act(*args):
+        TRACES["act"] += 1
+        return agent.act(*args)
+
+    pools = GoalPools(jnp.full((3, 4), 0.5), jnp.zeros((2, 4)))
+    batch = fixed_batch(cfg.replay.batch, cfg.replay.length)
+    seeds_step = jax.jit(jax.vmap(counted_train_step, in_axes=(0, None, None, 0)))
+    return agent, seeds_step, jax.jit(counted_act), batch, pools
+
+
+def test_train_step_traces_once_keeps_structure_is_deterministic_and_vmaps_over_seeds():
+    # One compilation of jax.vmap(train_step) over 2 seeds serves every check (compile time dominates).
+    agent, train_step, _, batch, pools = setup()
+    state = jax.vmap(agent.init)(jax.random.split(jax.random.PRNGKey(0), 2))
+    initial = state
+    for i in range(3):
+        state, metrics = train_step(state, batch, pools, jax.random.split(jax.random.PRNGKey(i), 2))
+    assert TRACES["train_step"] == 1
+    assert jax.tree.structure(state) == jax.tree.structure(initial)
+    for new, old in zip(jax.tree.leaves(state), jax.tree.leaves(initial), strict=True):
+        assert new.shape == old.shape and new.dtype == old.dtype
+    np.testing.assert_array_equal(np.asarray(state.updates), [3, 3])
+    for name in ["wm/loss", "gc/actor_loss", "gc/critic_loss", "distance/loss", "explore/ensemble_loss",
+                 "explore/actor_loss", "explore/critic_loss", "explore/reward"]:
+        assert metrics[name].shape == (2,) and np.all(np.isfinite(np.asarray(metrics[name]))), name
+    assert float(metrics["wm/loss"][0]) != float(metrics["wm/loss"][1])  # the seeds differ
+    # Same inputs and key -> same result; another key -> another result.
+    keys = jax.random.split(jax.random.PRNGKey(9), 2)
+    again_a, metrics_a = train_step(state, batch, pools, keys)
+    again_b, metrics_b = train_step(state, batch, pools, keys)
+    _, metrics_c = train_step(state, batch, pools, jax.random.split(jax.random.PRNGKey(10), 2))
+    for a, b in zip(jax.tree.leaves(again_a), jax.tree.leaves(again_b), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    loss_a, loss_b = np.asarray(metrics_a["gc/actor_loss"]), np.asarray(metrics_b["gc/actor_loss"])
+    np.testing.assert_array_equal(loss_a, loss_b)
+    assert np.all(np.asarray(metrics_a["gc/actor_loss"]) != np.asarray(metrics_c["gc/actor_loss"]))
+    assert TRACES["train_step"] == 1
+    # The target critic is copied on update 0 only (target_every = 5 in debug): now it lags the critic.
+    lag = jax.tree.leaves(jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b)), state.gc_critic.params,
+                                       state.gc_critic.target))
+    assert max(float(x) for x in lag) > 0
+
+
+def test_act_single_env_and_vmapped_modes():
+    agent, train_step, act, batch, pools = setup()
+    state = agent.init(jax.random.PRNGKey(3))
+    obs, goal = jnp.array([0.1, 0.2, 0.0, 0.0]), jnp.array([0.5, 0.5, 0.0, 0.0])
+    latent = agent.initial_latent(())
+    prev = jnp.zeros(2)
+    for mode in [MODE_GOAL, MODE_EXPLORE]:
+        action, new_latent = act(state, latent, prev, obs, goal, jax.random.PRNGKey(0), jnp.int32(mode))
+        assert action.shape == (2,) and new_latent.deter.shape == latent.deter.shape
+        assert float(jnp.max(jnp.abs(action))) <= 1.0
+    # Deterministic mode takes the actor's mode (the latent is still sampled, PEG eval_state_mean False).
+    key = jax.random.PRNGKey(0)
+    mode = jnp.int32(MODE_GOAL | MODE_DETERMINISTIC)
+    det = [act(state, latent, prev, obs, goal, key, mode)[0] for _ in range(2)]
+    np.testing.assert_array_equal(np.asarray(det[0]), np.asarray(det[1]))
+    stochastic = act(state, latent, prev, obs, goal, key, jnp.int32(MODE_GOAL))[0]
+    assert float(jnp.max(jnp.abs(stochastic - det[0]))) > 1e-4
+    goal_act = act(state, latent, prev, obs, goal, jax.random.PRNGKey(0), jnp.int32(MODE_DETERMINISTIC))[0]
+    explore_act = act(state, latent, prev, obs, goal, jax.random.PRNGKey(0), jnp.int32(3))[0]
+    assert float(jnp.max(jnp.abs(goal_act - explore_act))) > 1e-4  # two different policies
+    assert TRACES["act"] == 1  # mode is traced: one compilation serves all modes
+    batched = jax.jit(jax.vmap(agent.act, in_axes=(None, 0, 0, 0, 0, 0, None)))
+    actions, latents = batched(state, agent.initial_latent((5,)), jnp.zeros((5, 2)), jnp.tile(obs, (5, 1)),
+                               jnp.tile(goal, (5, 1)), jax.random.split(jax.random.PRNGKey(0), 5),
+                               jnp.int32(MODE_GOAL))
+    assert actions.shape == (5, 2) and latents.stoch.shape == (5, preset("debug").wm.stoch)
+    d = agent.goal_distance(state, new_latent, goal, obs=obs)
+    assert d.shape == () and np.isfinite(float(d))
+
+
+def test_planner_building_blocks_shapes():
+    agent, *_ = setup()
+    state = agent.init(jax.random.PRNGKey(4))
+    goals = jax.random.uniform(jax.random.PRNGKey(5), (6, 4))
+    traj = jax.jit(agent.imagine_to_goals, static_argnums=3)(state, agent.initial_latent(()), goals, 7,
+                                                           jax.random.PRNGKey(6))
+    assert traj.feat.shape[:2] == (8, 6) and traj.action.shape == (8, 6, 2)
+    reward, returns = agent.exploration_value(state, traj)
+    assert reward.shape == (8, 6) and returns.shape == (7, 6)
+    # Untrained members disagree once the state moves off the all-zero start (zero-initialised biases).
+    assert float(jnp.min(reward[1:])) > 0
