@@ -103,5 +103,6 @@ def visitation(env, replay, bins: int) -> tuple[jax.Array, jax.Array]:
     with jax.ensure_compile_time_eval():  # constants of the task, also when traced
         low, high = (np.asarray(env.xy(jnp.asarray(b, jnp.float32))) for b in env.observation_bounds)
     box = [[low[0], high[0]], [low[1], high[1]]]
-    histogram, _, _ = jnp.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=box, weights=filled.astype(jnp.float32))
+    weights = filled.astype(jnp.float32)
+    histogram, _, _ = jnp.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=box, weights=weights)
     return fraction, histogram

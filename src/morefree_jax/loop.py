@@ -13,6 +13,8 @@ Resume is exact: everything random comes from keys inside RunState, and the host
 from __future__ import annotations
 
 import contextlib
+import copy
+import dataclasses
 import math
 import signal
 import sys
@@ -89,6 +91,21 @@ class Run:
         self.train_updates = jax.jit(self._train_updates, donate_argnums=0)
         self.evaluate = jax.jit(self._evaluate)
         self.visitation = jax.jit(self._visitation)
+
+    # Run settings that no compiled function reads: a copy of the Run may change them and keep the
+    # compiled functions (tests and notebooks run several run dirs / lengths without recompiling).
+    HOST_ONLY_KEYS = ("run_dir", "total_steps", "log_every", "eval_every", "checkpoint_every",
+                      "keep_checkpoints")
+
+    def with_run(self, **changes) -> Run:
+        """A Run sharing this one's compiled functions, with host-only run settings changed."""
+        unknown = sorted(set(changes) - set(self.HOST_ONLY_KEYS))
+        if unknown:
+            raise ConfigError(f"with_run can change only {', '.join(self.HOST_ONLY_KEYS)}; got {unknown}")
+        twin = copy.copy(self)
+        twin.config = dataclasses.replace(self.config, run=dataclasses.replace(self.config.run, **changes))
+        twin.run_dir, twin.config_dict = twin.config.run.resolved_run_dir, config_to_dict(twin.config)
+        return twin
 
     # ---- pure functions of the run (jitted in __init__) ------------------------------------------
     def _init(self, key) -> RunState:
