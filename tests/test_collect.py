@@ -81,7 +81,8 @@ def test_go_phase_lasts_h_g_steps_when_the_learned_distance_stays_above_threshol
     assert metrics["go/steps"] == 50 and metrics["go/active_at_end"] == 0
     assert np.flatnonzero(resets).tolist() == [0, 37, 74]  # stream positions 0, 37, 74
     moved = ~resets
-    assert np.all(actions[:50][moved[:50]] == GO_ACTION) and np.all(actions[50:][moved[50:]] == EXPLORE_ACTION)
+    assert np.all(actions[:50][moved[:50]] == GO_ACTION)
+    assert np.all(actions[50:][moved[50:]] == EXPLORE_ACTION)
     assert np.all(actions[resets] == 0.0)
     assert int(stream.steps) == 100 and int(stream.latent) == 100 - 75  # filtered since the reset at 74
 
@@ -109,7 +110,8 @@ def test_planner_chunk_goal_comes_from_the_search():
     np.testing.assert_allclose(np.asarray(planner.mean), TARGET, atol=0.3)
     np.testing.assert_allclose(np.asarray(stream.goal)[:2], TARGET[:2], atol=1.0)
     # next chunk: no re-optimisation, a sample of the stored Gaussian
-    _, _, planner2, _, metrics2 = run_chunk(10.0, schedule_cfg=schedule_cfg, start=(stream, schedule, planner))
+    start = (stream, schedule, planner)
+    _, _, planner2, _, metrics2 = run_chunk(10.0, schedule_cfg=schedule_cfg, start=start)
     assert metrics2["goal/replanned"] == 0
     np.testing.assert_array_equal(np.asarray(planner2.mean), np.asarray(planner.mean))
 

@@ -93,7 +93,8 @@ def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
     # Resume (same config, longer budget ignored) and run one more chunk.
     summary = train("morefree", killed_dir, THREE_CHUNKS, checkpoint_every=200)
     assert summary.env_steps == THREE_CHUNKS
-    (step_a, state_a), (step_b, state_b) = final_state("morefree", full_dir), final_state("morefree", killed_dir)
+    step_a, state_a = final_state("morefree", full_dir)
+    step_b, state_b = final_state("morefree", killed_dir)
     assert step_a == step_b == THREE_CHUNKS
     leaves_a, leaves_b = jax.tree.leaves(state_a), jax.tree.leaves(state_b)
     assert len(leaves_a) == len(leaves_b)
@@ -156,7 +157,8 @@ def test_bad_cli_input_exits_2_with_one_line(arguments, message, capsys):
 
 
 def test_bad_cli_input_exit_code_in_a_subprocess():
-    result = subprocess.run([sys.executable, "-m", "experiments.train", "env=point_umaze", "steps=0"],
-                            cwd=REPO, env={**os.environ, "PYTHONPATH": "src:."}, capture_output=True, text=True)
+    command = [sys.executable, "-m", "experiments.train", "env=point_umaze", "steps=0"]
+    result = subprocess.run(command, cwd=REPO, env={**os.environ, "PYTHONPATH": "src:."}, capture_output=True,
+                            text=True)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == "error: steps must be > 0, got 0"

@@ -41,6 +41,8 @@ class RunConfig:
     hard_reset_every: None = the task's own period. subgoal_threshold: learned distance (env steps) under
     which the go phase switches to exploring; None = the per-task default (collect.SUBGOAL_THRESHOLDS).
     visitation_bins: bins per axis of the replay's xy visitation histogram logged at each evaluation.
+    checkpoint_minutes: also checkpoint after this much wall-clock time (slow machines); results do not
+    depend on where checkpoints fall, so it may change on resume.
     """
 
     env: str = "point_umaze"
@@ -60,6 +62,7 @@ class RunConfig:
     hard_reset_every: int | None = None
     subgoal_threshold: float | None = None
     visitation_bins: int = 50
+    checkpoint_minutes: float = 10.0
 
     def __post_init__(self):
         positive = ("total_steps", "eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
@@ -70,6 +73,8 @@ class RunConfig:
         for name in ("prefill", "pretrain"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"run.{name} must be >= 0, got {getattr(self, name)}")
+        if self.checkpoint_minutes <= 0:
+            raise ConfigError(f"run.checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
         for name in ("train_every", "hard_reset_every", "subgoal_threshold"):
             if getattr(self, name) is not None and getattr(self, name) <= 0:
                 raise ConfigError(f"run.{name} must be > 0 or none, got {getattr(self, name)}")
@@ -280,7 +285,7 @@ class Config:
 # group of the learner without the "agent." prefix (wm.deter=64).
 SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
 # Keys that may change when a run dir is resumed: extending a run's step budget continues it.
-RESUMABLE_KEYS = ("run.total_steps",)
+RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes")
 _ALIASES = {"planner.goal_update_every": "schedule.goal_update_every"}  # one setting, stored in both
 
 

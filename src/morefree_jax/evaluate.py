@@ -106,3 +106,40 @@ def visitation(env, replay, bins: int) -> tuple[jax.Array, jax.Array]:
     weights = filled.astype(jnp.float32)
     histogram, _, _ = jnp.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=box, weights=weights)
     return fraction, histogram
+
+
+def render_episode(env, pipeline_states, episode: int = 0, width: int = 320, height: int = 240) -> np.ndarray:
+    """RGB frames (T, H, W, 3) of one episode of `EvalResult.pipeline_states` (T, E, ...), rendered by C
+    MuJoCo on the CPU (set MUJOCO_GL=egl on a headless machine)."""
+    states = jax.device_get(pipeline_states)
+    length = jax.tree.leaves(states)[0].shape[0]
+    frames = []
+    for t in range(length):
+        data = jax.tree.map(lambda x, t=t: x[t, episode], states)
+        frames.append(env.render(data, width=width, height=height))
+    return np.stack(frames)
+
+
+def write_video(frames: np.ndarray, path, fps: int = 20) -> str:
+    """Writes frames (T, H, W, 3): .mp4 when imageio is installed, an animated .gif with Pillow, else
+    .npy. Returns the path written (its suffix may differ from the one asked for)."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".mp4" and importlib.util.find_spec("imageio") is not None:
+        import imageio
+
+        imageio.mimwrite(path, list(frames), fps=fps)
+        return str(path)
+    if path.suffix in (".mp4", ".gif") and importlib.util.find_spec("PIL") is not None:
+        from PIL import Image
+
+        path = path.with_suffix(".gif")
+        images = [Image.fromarray(frame) for frame in frames]
+        images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+        return str(path)
+    path = path.with_suffix(".npy")
+    np.save(path, frames)
+    return str(path)

@@ -18,6 +18,7 @@ import dataclasses
 import math
 import signal
 import sys
+import time
 import warnings
 from typing import NamedTuple
 
@@ -95,7 +96,7 @@ class Run:
     # Run settings that no compiled function reads: a copy of the Run may change them and keep the
     # compiled functions (tests and notebooks run several run dirs / lengths without recompiling).
     HOST_ONLY_KEYS = ("run_dir", "total_steps", "log_every", "eval_every", "checkpoint_every",
-                      "keep_checkpoints")
+                      "keep_checkpoints", "checkpoint_minutes")
 
     def with_run(self, **changes) -> Run:
         """A Run sharing this one's compiled functions, with host-only run settings changed."""
@@ -195,6 +196,7 @@ class Run:
 
     def train(self, progress: str = "auto") -> RunSummary:
         state, steps, checkpointer, resumed = self.start()
+        self._last_save = time.monotonic()
         run = self.config.run
         logger = RunLogger(self.run_dir, self.config_dict, run.total_steps,
                            resume_step=steps if resumed else None, progress=progress)
@@ -240,9 +242,12 @@ class Run:
         return record
 
     def _maybe_checkpoint(self, checkpointer, state, previous: int, steps: int) -> None:
+        """At multiples of checkpoint_every, or when checkpoint_minutes have passed since the last save."""
         every = self.config.run.checkpoint_every
-        if steps // every > previous // every:
+        due_by_time = time.monotonic() - self._last_save >= 60 * self.config.run.checkpoint_minutes
+        if steps // every > previous // every or due_by_time:
             checkpointer.save(steps, state, {"env_steps": steps}, force=True)
+            self._last_save = time.monotonic()
 
 
 class _StopFlag:
@@ -270,3 +275,25 @@ class _StopFlag:
 
 def prepare_run(config: Config) -> Run:
     return Run(config)
+
+
+def restore_run(run_dir) -> tuple[Run, RunState, int]:
+    """(Run, its newest good checkpoint's state, that step) of an existing run dir, read-only (safe beside
+    a live run). The config comes from the run dir's config.json."""
+    import json
+    import pathlib
+
+    from morefree_jax.checkpoint import CheckpointError, latest_valid
+    from morefree_jax.config_run import config_from_dict
+
+    path = pathlib.Path(run_dir) / "config.json"
+    if not path.exists():
+        raise ConfigError(f"{run_dir} is not a run dir (no config.json)")
+    config = config_from_dict(Config, json.loads(path.read_text()))
+    run = Run(dataclasses.replace(config, run=dataclasses.replace(config.run, run_dir=str(run_dir))))
+    template = run.init(jax.random.PRNGKey(config.run.seed))
+    restored = latest_valid(run_dir, template, run.config_dict,
+                            ignore_config_keys=(*RESUMABLE_KEYS, "run.run_dir"))
+    if restored is None:
+        raise CheckpointError(f"no checkpoint in {pathlib.Path(run_dir) / 'checkpoints'} yet")
+    return run, restored.state, restored.step
