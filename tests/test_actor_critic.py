@@ -49,7 +49,7 @@ def test_goal_conditioned_actor_reduces_distance_to_random_goals():
             start, goal = starts_and_goals(key_data)
 
             def reward_fn(traj):
-                return -jnp.linalg.norm(traj.latent.deter - goal[None], axis=-1), None
+                return -jnp.linalg.norm(traj.latent.deter[:-1] - goal[None], axis=-1), None
 
             actor, critic, _, metrics = actor_critic_update(ac, actor, critic, step, model, None, reward_fn,
                                                             start, goal, key_update, "gc")

@@ -86,7 +86,9 @@ def value(ac: ActorCritic, critic_params, feat: jax.Array, projection) -> jax.Ar
     return ac.critic.apply(critic_params, feat, projection, method=ContextMLP.from_projection)[..., 0]
 
 
-RewardFn = Callable[[Trajectory], tuple[jax.Array, object]]  # -> reward (H+1, N), extras
+# Trajectory -> (reward (H, N) of states 0..H-1, extras). The last state's reward never enters a
+# lambda-return, so reward functions skip it (saves 1/(H+1) of the reward networks' forward and backward).
+RewardFn = Callable[[Trajectory], tuple[jax.Array, object]]
 
 
 def imagine_with(ac: ActorCritic, actor_params, rssm: RSSM, rssm_params, start: Latent,
@@ -94,18 +96,23 @@ def imagine_with(ac: ActorCritic, actor_params, rssm: RSSM, rssm_params, start: 
     """The learner's policy rolled out in the model for `config.horizon` steps from `start` (N, ...)."""
     actor_projection = project(ac.actor, actor_params, context)
     return imagine(rssm, rssm_params, lambda f: policy(ac, actor_params, f, actor_projection), start,
-                   ac.config.horizon, key)
+                   ac.config.horizon, key, min(ac.config.unroll, ac.config.horizon))
 
 
 def returns_of(ac: ActorCritic, target_params, trajectory: Trajectory, reward: jax.Array,
                context: jax.Array | None) -> tuple[jax.Array, jax.Array]:
-    """TD(lambda) targets (H, N) and weights (H+1, N) of a trajectory under the target critic."""
+    """TD(lambda) targets (H, N) and weights (H+1, N) of a trajectory under the target critic.
+
+    reward (H, N) holds the rewards of states 0..H-1; values bootstrap from the target critic.
+    """
     cfg = ac.config
     next_value = value(ac, target_params, trajectory.feat[1:], _time_broadcast(
         project(ac.critic, target_params, context)))
-    discount = jnp.full(reward.shape, cfg.discount)
-    target = lambda_return(reward[:-1], next_value, discount[:-1], cfg.lambda_)
-    return target, discount_weights(discount)
+    discount = jnp.full(trajectory.feat.shape[:1], cfg.discount)  # constant: no discount head (PEG)
+    target = lambda_return(reward, next_value, discount[:-1, None], cfg.lambda_)
+    # Weights from the (H+1,) discounts, broadcast over N (a (H+1, N) cumprod is slow to constant-fold).
+    weight = jnp.broadcast_to(discount_weights(discount)[:, None], trajectory.feat.shape[:2])
+    return target, weight
 
 
 def _time_broadcast(projection):
@@ -123,7 +130,7 @@ def actor_loss(ac: ActorCritic, actor_params, target_params, rssm: RSSM, rssm_pa
     objective = target[1:] + ac.config.entropy * entropy[:-1]
     loss = -jnp.mean(sg(weight[:-2]) * objective)
     metrics = {
-        "actor_loss": loss, "actor_entropy": jnp.mean(entropy), "reward": jnp.mean(reward[:-1]),
+        "actor_loss": loss, "actor_entropy": jnp.mean(entropy), "reward": jnp.mean(reward),
         "target": jnp.mean(target), "action_abs": jnp.mean(jnp.abs(trajectory.action[1:])),
     }
     imagined = Imagined(sg(trajectory), sg(target), sg(weight), sg(extras))

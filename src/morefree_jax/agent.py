@@ -177,7 +177,7 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
     def exploration_value(state: AgentState, trajectory: Trajectory):
         """-> (disagreement reward (H+1, G), explore target-critic TD(lambda) returns (H, G))."""
         reward = disagreement(ens, state.ensemble.params, trajectory.feat, trajectory.action)
-        target, _ = returns_of(explore_ac, state.explore_critic.target, trajectory, reward, None)
+        target, _ = returns_of(explore_ac, state.explore_critic.target, trajectory, reward[:-1], None)
         return reward, target
 
     def world_model_part(state: AgentState, batch: Batch, key: jax.Array):
@@ -197,8 +197,9 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
         distance_projection = goal_projection(dist, state.distance.params, goal_embed)
 
         def goal_reward(trajectory: Trajectory):
+            # Embeddings of all H+1 states (the distance trains on them), reward on states 0..H-1.
             embeds = wm.embed_head.apply(wm_params["embed_head"], trajectory.feat)
-            d = dist.net.apply(state.distance.params, embeds, distance_projection[None],
+            d = dist.net.apply(state.distance.params, embeds[:-1], distance_projection[None],
                                method=dist.net.from_projection)[..., 0]
             return -d, embeds
 
@@ -218,7 +219,8 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
                                                            jnp.swapaxes(batch.action, 0, 1))
 
         def explore_reward(trajectory: Trajectory):
-            return disagreement(ens, ensemble_state.params, trajectory.feat, trajectory.action), None
+            reward = disagreement(ens, ensemble_state.params, trajectory.feat[:-1], trajectory.action[:-1])
+            return reward, None
 
         explore_actor, explore_critic, _, explore_metrics = actor_critic_update(
             explore_ac, state.explore_actor, state.explore_critic, state.updates, wm.rssm, wm_params["rssm"],

@@ -36,7 +36,7 @@ PolicyFn = Callable[[jax.Array], TruncNormal]  # stop-gradient feat (N, F) -> di
 
 
 def imagine(rssm: RSSM, rssm_params, policy_fn: PolicyFn, start: Latent, horizon: int,
-            key: jax.Array) -> Trajectory:
+            key: jax.Array, unroll: int = 1) -> Trajectory:
     """Rolls `policy_fn` out in the prior for `horizon` steps from `start` (N, ...)."""
     key_noise, key_actions = jax.random.split(key)
     noise = jax.random.normal(key_noise, (horizon, *start.stoch.shape))
@@ -49,7 +49,7 @@ def imagine(rssm: RSSM, rssm_params, policy_fn: PolicyFn, start: Latent, horizon
         latent, _ = rssm.apply(rssm_params, latent, action, noise_t, method=RSSM.img_step)
         return latent, (latent, action, dist)
 
-    _, (latents, actions, dists) = jax.lax.scan(step, start, (action_keys, noise))
+    _, (latents, actions, dists) = jax.lax.scan(step, start, (action_keys, noise), unroll=unroll)
     latents = jax.tree.map(lambda s, x: jnp.concatenate([s[None], x], 0), start, latents)
     actions = jnp.concatenate([jnp.zeros_like(actions[:1]), actions], 0)
     return Trajectory(latents, feature(latents), actions, dists)

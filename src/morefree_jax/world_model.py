@@ -110,7 +110,8 @@ def observe(wm: WorldModel, params: dict, embed, action, is_first, key) -> tuple
         return latent, (latent, post)
 
     start = zero_latent(cfg.deter, cfg.stoch, embed.shape[1:-1])
-    _, (latents, post) = jax.lax.scan(step, start, (action, is_first, projection, noise))
+    _, (latents, post) = jax.lax.scan(step, start, (action, is_first, projection, noise),
+                                      unroll=min(cfg.unroll, embed.shape[0]))
     prior = rssm.apply(p, latents.deter, method=RSSM.prior_stats)
     return latents, post, prior
 
