@@ -39,8 +39,8 @@ def train(agent: str, run_dir, total_steps: int, **changes):
 
 def final_state(agent: str, run_dir):
     run, template = debug_run(agent)
-    restored = latest_valid(run_dir, template, run.config_dict, ignore_config_keys=("run.total_steps",
-                                                                                     "run.run_dir"))
+    ignore = tuple(f"run.{key}" for key in run.HOST_ONLY_KEYS)  # debug_run's own run settings differ
+    restored = latest_valid(run_dir, template, run.config_dict, ignore_config_keys=ignore)
     return restored.step, restored.state
 
 

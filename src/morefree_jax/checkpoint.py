@@ -120,9 +120,14 @@ def _storable(tree: Any) -> dict:
 
 
 def _rebuild(template: Any, stored: dict) -> Any:
-    """Inverse of _storable: the template's structure, stored leaves, the template's zero-size leaves."""
+    """Inverse of _storable: the template's structure, stored leaves, the template's zero-size leaves.
+
+    Restored arrays are made uncommitted (like the outputs of a jitted init), so that a jitted function
+    fed a restored state hits the same compiled entry as with a fresh state instead of tracing again."""
     leaves, treedef = jax.tree_util.tree_flatten(template)
-    leaves = [stored.get(f"leaf_{i:05d}", leaf) for i, leaf in enumerate(leaves)]
+    key = "leaf_{:05d}".format
+    leaves = [jax.device_put(np.asarray(stored[key(i)])) if key(i) in stored else leaf
+              for i, leaf in enumerate(leaves)]
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
