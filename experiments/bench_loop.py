@@ -61,12 +61,14 @@ def collection_rows(task: str, chunks: int = 5) -> list[dict]:
     planner_cfg = planner_config_for(task)
     chunk = jax.jit(functools.partial(collect_chunk, env, agent, cfg, planner_cfg, schedule_cfg))
     key_agent, key_stream = jax.random.split(jax.random.PRNGKey(0))
-    agent_state = agent.init(key_agent)
+    agent_state = jax.jit(agent.init)(key_agent)
     carry = [init_stream(env, agent, key_stream), init_schedule(env.observation_size, schedule_cfg),
              start_search(planner_cfg, jnp.zeros(env.observation_size))]
 
-    def one_chunk(key=jax.random.PRNGKey(1)):
-        carry[0], carry[1], carry[2], transitions, metrics = chunk(agent_state, *carry, key)
+    key_chunk = jax.random.PRNGKey(1)
+
+    def one_chunk():
+        carry[0], carry[1], carry[2], transitions, metrics = chunk(agent_state, *carry, key_chunk)
         return transitions
 
     start = time.perf_counter()
@@ -99,7 +101,7 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
 
         return plan_goal(score_fn, start_search(config, init_mean), low, high, key, config)
 
-    agent_state = agent.init(jax.random.PRNGKey(0))
+    agent_state = jax.jit(agent.init)(jax.random.PRNGKey(0))
     latent = agent.initial_latent()
     init_mean = env.initial_states(jax.random.PRNGKey(1))
     start = time.perf_counter()
