@@ -162,3 +162,22 @@ def test_bad_cli_input_exit_code_in_a_subprocess():
                             text=True)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == "error: steps must be > 0, got 0"
+
+
+def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
+    train("morefree", tmp_path, PREFILL + 100)
+    video = tmp_path / "episode.gif"
+    command = [sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path}", "episodes=3",
+               f"video={video}"]
+    env = {**os.environ, "PYTHONPATH": "src:.", "MUJOCO_GL": "egl",
+           "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE}
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"checkpoint step {PREFILL + 100}, 3 episodes" in result.stdout
+    goal_row = next(line for line in result.stdout.splitlines() if line.strip().startswith("0.00, 8.00"))
+    assert goal_row.split()[2] == "3"  # point_umaze: one goal (0, 8), all 3 episodes
+    written = pathlib.Path(result.stdout.split("video: ")[1].split()[0])
+    assert written.exists() and written.stat().st_size > 1000
+    bad = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path / 'nope'}"],
+                         cwd=REPO, env=env, capture_output=True, text=True)
+    assert bad.returncode == 2 and "is not a run dir" in bad.stderr
