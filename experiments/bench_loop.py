@@ -147,19 +147,25 @@ def chunk_rows(chunks: int = 2) -> list[dict]:
     ]
 
 
-def run(quick: bool = False) -> list[dict]:
+def run(quick: bool = False, show=None) -> list[dict]:
+    """All rows; `show(row)` is called as each row is measured (the CLI prints them)."""
     if quick:
-        return collection_rows("point_umaze", chunks=3)
+        parts = [functools.partial(collection_rows, "point_umaze", chunks=3)]
+    else:
+        parts = [functools.partial(collection_rows, task) for task in envs_mjx.ALL_ENVS]
+        parts += [functools.partial(search_rows, task) for task in ("point_umaze", "ant")] + [chunk_rows]
     rows = []
-    for task in envs_mjx.ALL_ENVS:
-        rows += collection_rows(task)
-    for task in ("point_umaze", "ant"):
-        rows += search_rows(task)
-    return rows + chunk_rows()
+    for part in parts:
+        for row in part():
+            rows.append(row)
+            if show is not None:
+                show(row)
+    return rows
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
-    for row in run(parser.parse_args().quick):
-        print(f"{row['name']:<40} {row['value']:>12.3f} {row['unit']:<8} {row['note']}")
+    run(parser.parse_args().quick,
+        show=lambda row: print(f"{row['name']:<36} {row['value']:>10.3f} {row['unit']:<8} {row['note']}",
+                               flush=True))

@@ -150,13 +150,18 @@ class Run:
         pools = GoalPools(jax.vmap(env.eval_goals)(jax.random.split(key_pools_eval, GOAL_POOL_SIZE)),
                           jax.vmap(env.initial_states)(jax.random.split(key_pools_initial, GOAL_POOL_SIZE)))
 
-        def update(agent_state, key_update):
-            key_batch, key_step = jax.random.split(key_update)
-            batch = replay_lib.sample(state.replay, key_batch, replay_cfg.batch, replay_cfg.length)
+        # The replay does not change during the chunk's updates: draw all n batches with one pass over the
+        # buffer's valid windows (O(capacity)) instead of one pass per update.
+        key_batches, key_steps = jax.random.split(key_updates)
+        num, size = self.updates_per_chunk, replay_cfg.batch
+        batches = replay_lib.sample(state.replay, key_batches, num * size, replay_cfg.length)
+        batches = jax.tree.map(lambda x: x.reshape(num, size, *x.shape[1:]), batches)
+
+        def update(agent_state, inputs):
+            batch, key_step = inputs
             return self.agent.train_step(agent_state, batch, pools, key_step)
 
-        agent_state, metrics = jax.lax.scan(update, state.agent,
-                                            jax.random.split(key_updates, self.updates_per_chunk))
+        agent_state, metrics = jax.lax.scan(update, state.agent, (batches, jax.random.split(key_steps, num)))
         return state.replace(agent=agent_state, key=key), _mean_metrics(metrics)
 
     def _evaluate(self, agent_state, key):
