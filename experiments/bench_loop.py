@@ -152,8 +152,12 @@ def run(quick: bool = False, show=None) -> list[dict]:
     if quick:
         parts = [functools.partial(collection_rows, "point_umaze", chunks=3)]
     else:
-        parts = [functools.partial(collection_rows, task) for task in envs_mjx.ALL_ENVS]
-        parts += [functools.partial(search_rows, task) for task in ("point_umaze", "ant")] + [chunk_rows]
+        # point_umaze first (the bars), then the search at the ant config, then every other task
+        others = [task for task in envs_mjx.ALL_ENVS if task != "point_umaze"]
+        partial = functools.partial
+        parts = [partial(collection_rows, "point_umaze"), partial(search_rows, "point_umaze"), chunk_rows,
+                 partial(search_rows, "ant")]
+        parts += [partial(collection_rows, task) for task in others]
     rows = []
     for part in parts:
         for row in part():
