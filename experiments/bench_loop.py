@@ -27,10 +27,10 @@ import jax.numpy as jnp
 
 import envs_mjx
 from morefree_jax.agent import EnvSpec, make_agent
-from morefree_jax.collect import CollectConfig, collect_chunk, init_stream
+from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
 from morefree_jax.config import preset
 from morefree_jax.go_explore import ScheduleConfig, init_schedule
-from morefree_jax.planner import peg_score, plan_goal, planner_config_for, start_search
+from morefree_jax.planner import plan_goal, planner_config_for, start_search
 
 SECTION = "loop"
 REFERENCE_STEPS_PER_S = 370.0  # TF2 original: policy 1.1-1.6 ms + distance check 1.1 ms per env step
@@ -94,10 +94,7 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
         traces.append(1)
 
         def score_fn(candidates, key_score):
-            trajectory = agent.imagine_to_goals(agent_state, start_latent, candidates, config.horizon,
-                                                key_score)
-            reward, returns = agent.exploration_value(agent_state, trajectory)
-            return peg_score(reward, returns, config.use_last_steps)
+            return peg_goal_scores(agent, agent_state, start_latent, candidates, config, key_score)
 
         return plan_goal(score_fn, start_search(config, init_mean), low, high, key, config)
 

@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from morefree_jax.agent import MODE_EXPLORE
-from morefree_jax.collect import CollectConfig, collect_chunk, init_stream
+from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
 from morefree_jax.go_explore import GoalType, ScheduleConfig, init_schedule
-from morefree_jax.planner import PlannerConfig, start_search
+from morefree_jax.planner import PlannerConfig, peg_score, start_search
 from tests.conftest import cached_env
 from tests.loop_helpers import callback_primitives, debug_run, hlo_has_callback
 
@@ -164,3 +164,21 @@ def test_chunk_function_compiles_once_and_has_no_host_callback():
         state, metrics = run.collect(state)
     assert run.collect._cache_size() == 1  # also after the restored runs of test_loop (same entry)
     assert all(np.isfinite(np.asarray(v)).all() for v in metrics.values())
+
+
+def test_goal_scores_on_the_last_steps_equal_the_full_computation():
+    run, state = debug_run("morefree")
+    agent, candidates = run.agent, jax.random.uniform(jax.random.PRNGKey(3), (6, 6), minval=0.0, maxval=8.0)
+    config = PlannerConfig(horizon=12, use_last_steps=4)
+
+    @jax.jit
+    def both(agent_state, key):
+        start = agent.initial_latent()
+        trajectory = agent.imagine_to_goals(agent_state, start, candidates, config.horizon, key)
+        reward, returns = agent.exploration_value(agent_state, trajectory)
+        full = peg_score(reward, returns, config.use_last_steps)
+        return full, peg_goal_scores(agent, agent_state, start, candidates, config, key)
+
+    full, trimmed = both(state.agent, jax.random.PRNGKey(4))
+    assert np.all(np.isfinite(np.asarray(full))) and float(jnp.std(full)) > 0
+    np.testing.assert_allclose(np.asarray(trimmed), np.asarray(full), rtol=1e-5, atol=1e-5)

@@ -37,8 +37,8 @@ from morefree_jax.go_explore import schedule_metrics as _schedule_metrics
 from morefree_jax.planner import PlannerConfig, peg_score, plan_goal, start_search
 
 # Learned-distance threshold (env steps) for the early switch, from PEG's closest task (agent.md 5.1).
-SUBGOAL_THRESHOLDS = {"point_umaze": 5.0, "ant": 2.0, "fetch_push": 1.0, "fetch_pick_place": 1.0,
-                      "fetch_push_hard": 1.0, "fetch_pick_place_hard": 1.0}
+SUBGOAL_THRESHOLDS = {"point_umaze": 5.0, "ant": 2.0, "push": 1.0, "pick_place": 1.0, "push_hard": 1.0,
+                      "pick_place_hard": 1.0}
 DEFAULT_SUBGOAL_THRESHOLD = 2.0
 
 
@@ -181,6 +181,25 @@ def prefill_stream(env, agent, cfg: CollectConfig, stream: StreamState, key: jax
         transitions
 
 
+def peg_goal_scores(agent, agent_state, start_latent, candidates: jax.Array, planner_cfg: PlannerConfig,
+                    key: jax.Array) -> jax.Array:
+    """PEG's fitness of candidate goals (G, O) -> (G,): imagine the goal-conditioned policy from the start
+    latent for `horizon` steps, then sum the exploration value (agent.md 4.2.4).
+
+    When only the last k returns count (`use_last_steps`), only the last k + 1 imagined states enter them
+    (a lambda-return looks forward only), so the disagreement ensemble and the critic run on those states
+    alone: for the ant config (horizon 150, k 10) that is 11 of 151 states, the same numbers at a fraction
+    of the cost."""
+    trajectory = agent.imagine_to_goals(agent_state, start_latent, candidates, planner_cfg.horizon, key)
+    last = planner_cfg.use_last_steps
+    if last is not None and last < planner_cfg.horizon:
+        tail = lambda x: x[-(last + 1):]  # noqa: E731
+        trajectory = trajectory._replace(latent=jax.tree.map(tail, trajectory.latent),
+                                         feat=tail(trajectory.feat), action=tail(trajectory.action))
+    reward, returns = agent.exploration_value(agent_state, trajectory)
+    return peg_score(reward, returns, last)
+
+
 def choose_goal(env, agent, planner_cfg: PlannerConfig, schedule_cfg: ScheduleConfig, agent_state,
                 stream: StreamState, schedule, planner, key):
     """The schedule's next goal (O,), with PEG's goal search from the current latent when it is due.
@@ -200,10 +219,7 @@ def choose_goal(env, agent, planner_cfg: PlannerConfig, schedule_cfg: ScheduleCo
 
     def search_fn(planner_state, key_search):
         def score_fn(candidates, key_score):  # (G, O) -> (G,)
-            trajectory = agent.imagine_to_goals(agent_state, start_latent, candidates, planner_cfg.horizon,
-                                                key_score)
-            reward, returns = agent.exploration_value(agent_state, trajectory)
-            return peg_score(reward, returns, planner_cfg.use_last_steps)
+            return peg_goal_scores(agent, agent_state, start_latent, candidates, planner_cfg, key_score)
 
         del planner_state  # every re-optimisation starts from the initial Gaussian (PEG)
         return plan_goal(score_fn, start_search(planner_cfg, init_mean), low, high, key_search, planner_cfg)
