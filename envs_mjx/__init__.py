@@ -15,6 +15,12 @@ from envs_mjx.base import ResetFreeEnv
 _REGISTRY: dict[str, str] = {
     "point_umaze": "envs_mjx.point_umaze:PointUMaze",
     "ant": "envs_mjx.ant:Ant",
+    "tabletop": "envs_mjx.tabletop:Tabletop",
+    "sawyer_door": "envs_mjx.sawyer_door:SawyerDoor",
+    "push": "envs_mjx.fetch:FetchPush",
+    "pick_place": "envs_mjx.fetch:FetchPickPlace",
+    "push_hard": "envs_mjx.fetch:FetchPushHard",
+    "pick_place_hard": "envs_mjx.fetch:FetchPickPlaceHard",
 }
 
 ALL_ENVS: tuple[str, ...] = tuple(_REGISTRY)

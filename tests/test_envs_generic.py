@@ -28,13 +28,22 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
     _, _, obs_a = rollout(jax.random.PRNGKey(1))
     _, _, obs_b = rollout(jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(obs_a), np.asarray(obs_b))
-    reset = jax.jit(cached_env(env_name).reset)
+    env = cached_env(env_name)
+    reset = jax.jit(env.reset)
     first, second = reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(2))
-    assert not np.array_equal(np.asarray(first.obs), np.asarray(second.obs))
+    if np.array_equal(np.asarray(first.obs), np.asarray(second.obs)):
+        # Allowed only for a task whose original has one fixed initial state (EARL tabletop): then the
+        # initial-state distribution is that point, and the reset key still reaches the state's rng.
+        fixed = np.asarray(env.initial_states(jax.random.PRNGKey(1)))
+        np.testing.assert_array_equal(fixed, np.asarray(env.initial_states(jax.random.PRNGKey(2))))
+        np.testing.assert_array_equal(np.asarray(first.obs), fixed)
+        assert not np.array_equal(np.asarray(first.info["rng"]), np.asarray(second.info["rng"]))
 
 
 def test_step_traces_once(env_name):
     env = cached_env(env_name)
+    # chex keys its counter on the definition site, which every parametrization of this test shares.
+    chex.clear_trace_counter()
 
     @jax.jit
     @chex.assert_max_traces(n=1)

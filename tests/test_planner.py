@@ -128,3 +128,10 @@ def test_config_validation_and_task_defaults():
     assert (ant.method, ant.mppi_temperature, ant.horizon, ant.init_std, ant.use_last_steps) == (
         "mppi", 2.0, 150, 10.0, 10)
     assert planner.planner_config_for("point_umaze", iterations=3).iterations == 3
+
+
+def test_every_registered_task_has_planner_defaults():
+    import envs_mjx
+    from morefree_jax.planner import PLANNER_DEFAULTS
+
+    assert set(envs_mjx.ALL_ENVS) <= set(PLANNER_DEFAULTS), set(envs_mjx.ALL_ENVS) - set(PLANNER_DEFAULTS)

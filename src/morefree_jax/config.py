@@ -99,13 +99,13 @@ def _paper() -> AgentConfig:
 def _cpu() -> AgentConfig:
     # Chosen by measurement (experiments/bench_core.py, README): the paper's structure (layer counts,
     # horizon, heads, losses) with every width 128 (stoch 32), batch 16 x 50, 128 imagination starts
-    # (random subset of the 800 posteriors) and 5 ensemble members; imagination scans fully unrolled.
+    # (random subset of the 800 posteriors) and 4 ensemble members; imagination scans fully unrolled.
     width = (128, 128, 128)
     wm = WorldModelConfig(deter=128, hidden=128, stoch=32, encoder_layers=width, decoder_layers=width,
                           embed_head_layers=width)
     mlp = (128, 128, 128, 128)
     gc = ActorCriticConfig(actor_layers=mlp, critic_layers=mlp, unroll=15)
-    explore = ExploreConfig(members=5, layers=mlp, ac=gc)
+    explore = ExploreConfig(members=4, layers=mlp, ac=gc)
     return AgentConfig(
         wm=wm, gc=gc, distance=DistanceConfig(layers=mlp), explore=explore,
         replay=ReplayConfig(batch=16, length=50), imag_starts=128,

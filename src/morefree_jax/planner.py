@@ -94,7 +94,7 @@ PLANNER_DEFAULTS: dict[str, dict] = {
     # PEG used 2000 candidates there, we keep 500 for this CPU (choice). Eval episode 50 -> horizon 25.
     **{name: dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=10.0, init_std=0.5,
                   horizon=25, use_last_steps=10, init_mean="current")
-       for name in ("fetch_push", "fetch_pick_place", "fetch_push_hard", "fetch_pick_place_hard")},
+       for name in ("push", "pick_place", "push_hard", "pick_place_hard")},
     # No PEG counterpart: PEG's default MPPI (gamma 10, last 10). std_scale is a choice matched to the
     # coordinate range of each task (tabletop mug/gripper xy within +-2.5; sawyer arm/door in ~0.5 m).
     "tabletop": dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=10.0, init_std=1.0,
