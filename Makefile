@@ -6,8 +6,11 @@ AGENT ?= morefree
 PRESET ?= cpu
 SEED ?= 0
 TEST_WORKERS ?= 2
+STEPS ?= 1000000
+ARGS ?=
+RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
 
-.PHONY: install test test-slow lint bench clean
+.PHONY: install test test-slow lint bench clean train evaluate
 
 install:
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +28,14 @@ lint:
 
 bench:
 	$(PY) -m experiments.bench $(BENCH_ARGS)
+
+# Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
+train:
+	PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) seed=$(SEED) \
+		steps=$(STEPS) $(ARGS)
+
+evaluate:
+	PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)
 
 clean:
 	rm -rf bench/ .pytest_cache build *.egg-info src/*.egg-info

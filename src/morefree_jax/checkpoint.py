@@ -112,6 +112,25 @@ def array_checksums(tree: Any) -> dict[str, str]:
     return sums
 
 
+def _storable(tree: Any) -> dict:
+    """The tree's non-empty array leaves as a flat dict {"leaf_<index>": array}. Orbax cannot save
+    zero-size arrays (mjx.Data has some) and flat simple names keep odd tree paths out of file names."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    return {f"leaf_{i:05d}": leaf for i, leaf in enumerate(leaves) if np.size(leaf) > 0}
+
+
+def _rebuild(template: Any, stored: dict) -> Any:
+    """Inverse of _storable: the template's structure, stored leaves, the template's zero-size leaves.
+
+    Restored arrays are made uncommitted (like the outputs of a jitted init), so that a jitted function
+    fed a restored state hits the same compiled entry as with a fresh state instead of tracing again."""
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    key = "leaf_{:05d}".format
+    leaves = [jax.device_put(np.asarray(stored[key(i)])) if key(i) in stored else leaf
+              for i, leaf in enumerate(leaves)]
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
 def _file_manifest(step_dir: pathlib.Path) -> dict[str, list]:
     manifest = {}
     for path in sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != FILE_MANIFEST):
@@ -202,7 +221,8 @@ class RunCheckpointer:
             "checksums": array_checksums(state),
         }
         with _interrupts_deferred():
-            items = ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta))
+            items = ocp.args.Composite(state=ocp.args.StandardSave(_storable(state)),
+                                       meta=ocp.args.JsonSave(meta))
             self.manager.save(step, args=items, force=True)
             self.manager.wait_until_finished()
             step_dir = self.directory / str(step)
@@ -213,9 +233,10 @@ class RunCheckpointer:
         step_dir = self.directory / str(step)
         _check_files(step_dir)
         restored = self.manager.restore(
-            step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore())
+            step, args=ocp.args.Composite(state=ocp.args.StandardRestore(_storable(target)),
+                                          meta=ocp.args.JsonRestore())
         )
-        meta, state = restored["meta"], restored["state"]
+        meta, state = restored["meta"], _rebuild(target, restored["state"])
         refuse_config_change(meta["config"], self.config_dict, f"checkpoint {step_dir}",
                              self.ignore_config_keys)
         stored_sums, actual_sums = meta["checksums"], array_checksums(state)

@@ -17,6 +17,10 @@ import types
 import typing
 from typing import Any, Literal
 
+from morefree_jax.config import AgentConfig
+from morefree_jax.go_explore import ScheduleConfig
+from morefree_jax.planner import PlannerConfig
+
 # Train ratio n (update every n env steps) per task [paper appendix]: 2 for most tasks.
 TRAIN_EVERY_BY_TASK = {"sawyer_door": 5, "tabletop": 1}
 DEFAULT_TRAIN_EVERY = 2
@@ -33,6 +37,12 @@ class RunConfig:
     train_every: env steps per gradient update (None = the task's train ratio, `train_every_for`).
     prefill: random-action steps before learning (PEG point maze: 50 episodes x 50 = 2500 steps).
     eval_every: PEG point maze evaluates every 1e4 steps. run_dir: None = runs/<env>/<agent>/seed<seed>.
+    pretrain: gradient updates right after the prefill (PEG: 100), rounded up to whole chunks of updates.
+    hard_reset_every: None = the task's own period. subgoal_threshold: learned distance (env steps) under
+    which the go phase switches to exploring; None = the per-task default (collect.SUBGOAL_THRESHOLDS).
+    visitation_bins: bins per axis of the replay's xy visitation histogram logged at each evaluation.
+    checkpoint_minutes: also checkpoint after this much wall-clock time (slow machines); results do not
+    depend on where checkpoints fall, so it may change on resume.
     """
 
     env: str = "point_umaze"
@@ -48,17 +58,26 @@ class RunConfig:
     keep_checkpoints: int = 3
     log_every: int = 1_000
     run_dir: str | None = None
+    pretrain: int = 100
+    hard_reset_every: int | None = None
+    subgoal_threshold: float | None = None
+    visitation_bins: int = 50
+    checkpoint_minutes: float = 10.0
 
     def __post_init__(self):
         positive = ("total_steps", "eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
-                    "log_every")
+                    "log_every", "visitation_bins")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ConfigError(f"run.{name} must be > 0, got {getattr(self, name)}")
-        if self.prefill < 0:
-            raise ConfigError(f"run.prefill must be >= 0, got {self.prefill}")
-        if self.train_every is not None and self.train_every <= 0:
-            raise ConfigError(f"run.train_every must be > 0 or none, got {self.train_every}")
+        for name in ("prefill", "pretrain"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"run.{name} must be >= 0, got {getattr(self, name)}")
+        if self.checkpoint_minutes <= 0:
+            raise ConfigError(f"run.checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
+        for name in ("train_every", "hard_reset_every", "subgoal_threshold"):
+            if getattr(self, name) is not None and getattr(self, name) <= 0:
+                raise ConfigError(f"run.{name} must be > 0 or none, got {getattr(self, name)}")
 
     @property
     def resolved_train_every(self) -> int:
@@ -247,3 +266,91 @@ def config_from_dict(config_cls, data: dict, prefix: str = ""):
         raise ConfigError(f"unknown key(s) {unknown}; valid keys {where}: {', '.join(types_by_field)}")
     values = {name: _from_json(data[name], types_by_field[name], prefix + name) for name in data}
     return config_cls(**values)
+
+
+# ---- the root config of a run -------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a run depends on, written to <run_dir>/config.json: the training run, the learner
+    (core presets), the goal search and the goal schedule (set by the variant, `variants.py`)."""
+
+    run: RunConfig = dataclasses.field(default_factory=RunConfig)
+    agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
+    planner: PlannerConfig = dataclasses.field(default_factory=PlannerConfig)
+    schedule: ScheduleConfig = dataclasses.field(default_factory=ScheduleConfig)
+
+
+# CLI names of the run's identity; every other key is dotted: run.*, agent.*, planner.*, schedule.*, or a
+# group of the learner without the "agent." prefix (wm.deter=64).
+SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
+# Keys that may change when a run dir is resumed: extending a run's step budget continues it.
+RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes")
+_ALIASES = {"planner.goal_update_every": "schedule.goal_update_every"}  # one setting, stored in both
+
+
+def _full_key(key: str) -> str:
+    """Maps CLI shorthands to dotted keys of Config (wm.deter -> agent.wm.deter, eval_every -> run.*)."""
+    head = key.split(".")[0]
+    if head in _field_types(Config):
+        return key
+    if "." in key and head in _field_types(AgentConfig):
+        return "agent." + key
+    if "." not in key and key in _field_types(RunConfig):
+        return "run." + key
+    if key == "alpha":
+        raise ConfigError("alpha is ambiguous; set agent.alpha (imagination) or schedule.alpha (collection)")
+    shown = ", ".join([*SHORT_KEYS, "run.<key>", "agent.<key>", "planner.<key>", "schedule.<key>",
+                       *(f"{name}.<key>" for name, tp in _field_types(AgentConfig).items()
+                         if dataclasses.is_dataclass(tp))])
+    raise ConfigError(f"unknown key {key!r}; valid keys: {shown}")
+
+
+def split_arguments(arguments) -> tuple[dict[str, str], list[str]]:
+    """CLI words "key=value" -> (the short identity keys, the other overrides with full dotted keys)."""
+    short, overrides = {}, []
+    for argument in arguments:
+        key, sep, value = argument.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"argument {argument!r} must look like key=value (e.g. env=point_umaze)")
+        if key in SHORT_KEYS:
+            short[SHORT_KEYS[key]] = value.strip()
+            continue
+        full = _full_key(key)
+        overrides.append(f"{full}={value}")
+        if full in _ALIASES or full in _ALIASES.values():
+            other = _ALIASES.get(full) or next(k for k, v in _ALIASES.items() if v == full)
+            overrides.append(f"{other}={value}")
+    return short, overrides
+
+
+def resolve_config(arguments, valid_envs) -> Config:
+    """The root config of `train env=... agent=... preset=... seed=... steps=... key=value ...`.
+
+    Layers, later wins: defaults; the preset (learner sizes); the task's planner defaults; the variant
+    (schedule and imagination goals); the dotted overrides. Errors are one-line ConfigErrors."""
+    from morefree_jax.config import PRESETS, preset
+    from morefree_jax.planner import PLANNER_DEFAULTS
+    from morefree_jax.variants import VARIANTS, apply_variant
+
+    short, overrides = split_arguments(arguments)
+    try:
+        run = apply_overrides(RunConfig(), [f"{key}={value}" for key, value in short.items()])
+    except ConfigError as error:  # speak of the CLI name "steps", not the field
+        message = str(error).replace("run.total_steps", "steps").replace("total_steps", "steps")
+        raise ConfigError(message) from None
+    check_choice("env", run.env, valid_envs)
+    check_choice("agent", run.agent, VARIANTS)
+    check_choice("preset", run.preset, PRESETS)
+    planner = PlannerConfig(**PLANNER_DEFAULTS.get(run.env, {}))
+    config = Config(run=run, agent=preset(run.preset), planner=planner,
+                    schedule=ScheduleConfig(goal_update_every=planner.goal_update_every))
+    config = apply_variant(config, run.agent)
+    config = apply_overrides(config, overrides)
+    for key in ("env", "agent", "preset"):  # identity keys may also arrive dotted (run.env=...)
+        check_choice(key, getattr(config.run, key), {"env": valid_envs, "agent": VARIANTS,
+                                                     "preset": PRESETS}[key])
+    if config.schedule.goal_update_every != config.planner.goal_update_every and config.run.agent != "peg":
+        raise ConfigError("planner.goal_update_every and schedule.goal_update_every differ; set one of them")
+    return config

@@ -1,0 +1,172 @@
+"""Benchmark of the training system: fused collection throughput, goal-search time, time per chunk.
+
+    PYTHONPATH=src:. python -c "import experiments.bench_loop as b; print(b.run())"
+    PYTHONPATH=src:. python experiments/bench_loop.py [--quick]
+
+Rows {"section", "name", "value", "unit", "note"}:
+  collect/<task>_steps_per_s  env steps/s of the fused collection (goal policy + learned-distance check +
+                              env step; explore policy after H_G) with the `paper`-size agent, untrained,
+                              threshold ~0 so that every go step is checked (worst case). Bar: >= 2,000
+                              on point_umaze. Reference (TF2 original, this machine): <= ~370 steps/s.
+  planner/<task>_search_s     one PEG goal search with the task's planner config and the paper-size agent,
+                              compiled once (the trace count is checked); ant: 500 candidates, horizon 150,
+                              5 iterations. Bar: <= 20 s. Reference: 39-43 s per call.
+  chunk/*                     one chunk of the `cpu`-preset run on point_umaze: collect (no re-plan), train
+                              (chunk_len / train_every updates) and their shares.
+quick=True: the point_umaze collection row only (about 20 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+
+import envs_mjx
+from morefree_jax.agent import EnvSpec, make_agent
+from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
+from morefree_jax.config import preset
+from morefree_jax.go_explore import ScheduleConfig, init_schedule
+from morefree_jax.planner import plan_goal, planner_config_for, start_search
+
+SECTION = "loop"
+REFERENCE_STEPS_PER_S = 370.0  # TF2 original: policy 1.1-1.6 ms + distance check 1.1 ms per env step
+REFERENCE_SEARCH_S = 41.0  # TF2 original, ant config: 39-43 s per call
+
+
+def _row(name, value, unit, note=""):
+    return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
+
+
+def _median_time(fn, reps: int) -> float:
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return sorted(times)[len(times) // 2]
+
+
+def collection_rows(task: str, chunks: int = 5) -> list[dict]:
+    """Fused collection steps/s of an untrained paper-size agent (eval goals; the search is timed apart)."""
+    env = envs_mjx.make(task)
+    agent = make_agent(preset("paper"), EnvSpec.from_env(env))
+    half = env.eval_episode_length // 2
+    cfg = CollectConfig(half, env.eval_episode_length - half, subgoal_threshold=1e-9,
+                        hard_reset_every=env.hard_reset_every)
+    schedule_cfg = ScheduleConfig(kind="eval_only")
+    planner_cfg = planner_config_for(task)
+    chunk = jax.jit(functools.partial(collect_chunk, env, agent, cfg, planner_cfg, schedule_cfg))
+    key_agent, key_stream = jax.random.split(jax.random.PRNGKey(0))
+    agent_state = jax.jit(agent.init)(key_agent)
+    carry = [init_stream(env, agent, key_stream), init_schedule(env.observation_size, schedule_cfg),
+             start_search(planner_cfg, jnp.zeros(env.observation_size))]
+
+    key_chunk = jax.random.PRNGKey(1)
+
+    def one_chunk():
+        carry[0], carry[1], carry[2], transitions, metrics = chunk(agent_state, *carry, key_chunk)
+        return transitions
+
+    start = time.perf_counter()
+    jax.block_until_ready(one_chunk())
+    compile_s = time.perf_counter() - start
+    seconds = _median_time(one_chunk, chunks)
+    steps_per_s = cfg.chunk_len / seconds
+    note = (f"paper-size agent, chunk {cfg.chunk_len} steps (H_G {cfg.go_steps} with distance check), "
+            f"{steps_per_s / REFERENCE_STEPS_PER_S:.1f}x the TF2 bound; compile {compile_s:.1f} s")
+    return [_row(f"collect/{task}_steps_per_s", steps_per_s, "steps/s", note)]
+
+
+def search_rows(task: str, reps: int = 3) -> list[dict]:
+    """Seconds per PEG goal search (paper-size agent, the task's planner config), compiled once."""
+    env = envs_mjx.make(task)
+    agent = make_agent(preset("paper"), EnvSpec.from_env(env))
+    config = planner_config_for(task)
+    low, high = (jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
+    traces = []
+
+    @jax.jit
+    def search(agent_state, start_latent, init_mean, key):
+        traces.append(1)
+
+        def score_fn(candidates, key_score):
+            return peg_goal_scores(agent, agent_state, start_latent, candidates, config, key_score)
+
+        return plan_goal(score_fn, start_search(config, init_mean), low, high, key, config)
+
+    agent_state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    latent = agent.initial_latent()
+    init_mean = env.initial_states(jax.random.PRNGKey(1))
+    start = time.perf_counter()
+    jax.block_until_ready(search(agent_state, latent, init_mean, jax.random.PRNGKey(2)))
+    first_s = time.perf_counter() - start
+    keys = iter(jax.random.split(jax.random.PRNGKey(3), reps))
+    seconds = _median_time(lambda: search(agent_state, latent, init_mean, next(keys)), reps)
+    note = (f"{config.method}, {config.num_candidates} candidates, horizon {config.horizon}, "
+            f"{config.iterations} iterations, paper-size agent; first call (compile) {first_s:.1f} s; "
+            f"traced {len(traces)}x")
+    if task == "ant":
+        note += f"; {REFERENCE_SEARCH_S / seconds:.1f}x faster than the TF2 reference (39-43 s)"
+    return [_row(f"planner/{task}_search_s", seconds, "s", note)]
+
+
+def chunk_rows(chunks: int = 2) -> list[dict]:
+    """Collect vs train time of one chunk of the cpu-preset point_umaze run (no goal re-optimisation)."""
+    from morefree_jax.config_run import resolve_config
+    from morefree_jax.loop import prepare_run
+
+    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu", "run_dir=/nonexistent"],
+                            envs_mjx.ALL_ENVS)
+    run = prepare_run(config)
+    state = run.prefill(run.init(jax.random.PRNGKey(0)))
+    state, _ = jax.block_until_ready(run.collect(state))  # compiles; the first chunk re-plans
+    state, _ = jax.block_until_ready(run.train_updates(state))  # compiles
+    collect_s, train_s = [], []
+    for _ in range(chunks):
+        start = time.perf_counter()
+        state, _ = jax.block_until_ready(run.collect(state))
+        collect_s.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        state, _ = jax.block_until_ready(run.train_updates(state))
+        train_s.append(time.perf_counter() - start)
+    collect, train = min(collect_s), min(train_s)
+    total = collect + train
+    note = f"cpu preset, point_umaze, {run.chunk_len} env steps + {run.updates_per_chunk} updates per chunk"
+    return [
+        _row("chunk/point_umaze_cpu_s", total, "s", note),
+        _row("chunk/point_umaze_cpu_collect_share", 100 * collect / total, "%", f"collect {collect:.3f} s"),
+        _row("chunk/point_umaze_cpu_train_share", 100 * train / total, "%", f"train {train:.3f} s"),
+        _row("chunk/point_umaze_cpu_steps_per_s", run.chunk_len / total, "steps/s", "collect + train"),
+    ]
+
+
+def run(quick: bool = False, show=None) -> list[dict]:
+    """All rows; `show(row)` is called as each row is measured (the CLI prints them)."""
+    if quick:
+        parts = [functools.partial(collection_rows, "point_umaze", chunks=3)]
+    else:
+        # point_umaze first (the bars), then the search at the ant config, then every other task
+        others = [task for task in envs_mjx.ALL_ENVS if task != "point_umaze"]
+        partial = functools.partial
+        parts = [partial(collection_rows, "point_umaze"), partial(search_rows, "point_umaze"), chunk_rows,
+                 partial(search_rows, "ant")]
+        parts += [partial(collection_rows, task) for task in others]
+    rows = []
+    for part in parts:
+        for row in part():
+            rows.append(row)
+            if show is not None:
+                show(row)
+    return rows
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--quick", action="store_true")
+    run(parser.parse_args().quick,
+        show=lambda row: print(f"{row['name']:<36} {row['value']:>10.3f} {row['unit']:<8} {row['note']}",
+                               flush=True))

@@ -1,0 +1,73 @@
+"""Evaluate a run's newest good checkpoint: success per goal over N episodes, optionally a video.
+
+    python -m experiments.evaluate run_dir=runs/point_umaze/morefree/seed0 [episodes=10] [seed=0]
+                                   [video=eval.gif] [video_episode=0]
+
+Episodes start from the task's initial states with goals from its evaluation distribution; the policy is
+deterministic (as in training-time evaluation). The video is rendered with C MuJoCo on the CPU (EGL);
+it is an .mp4 when imageio is installed, else an animated .gif (Pillow), else frames in an .npy file.
+Read-only: safe to run beside a live training run. Bad input exits with code 2 and one line.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must precede importing mujoco
+
+KEYS = {"run_dir": str, "episodes": int, "seed": int, "video": str, "video_episode": int}
+
+
+def parse(argv: list[str]) -> dict:
+    values = {"episodes": 10, "seed": 0, "video": None, "video_episode": 0}
+    for argument in argv:
+        key, sep, text = argument.partition("=")
+        if not sep or key not in KEYS:
+            raise ValueError(f"bad argument {argument!r}; valid keys: {', '.join(KEYS)} (key=value)")
+        try:
+            values[key] = KEYS[key](text)
+        except ValueError:
+            raise ValueError(f"{key} expects {KEYS[key].__name__}, got {text!r}") from None
+    if "run_dir" not in values:
+        raise ValueError("run_dir=... is required")
+    if values["episodes"] <= 0 or not 0 <= values["video_episode"] < values["episodes"]:
+        raise ValueError("episodes must be > 0 and 0 <= video_episode < episodes")
+    return values
+
+
+def main(argv: list[str]) -> int:
+    from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
+    from morefree_jax.config_run import ConfigError
+
+    try:
+        args = parse(argv)
+        import jax
+
+        from morefree_jax.evaluate import evaluate_policy, render_episode, success_per_goal, write_video
+        from morefree_jax.loop import restore_run
+
+        run, state, step = restore_run(args["run_dir"])
+    except (ValueError, ConfigError, ConfigMismatchError, CheckpointError) as error:
+        print(f"error: {str(error).splitlines()[0]}", file=sys.stderr)
+        return 2
+    keep = args["video"] is not None
+    evaluate = jax.jit(lambda agent_state, key: evaluate_policy(
+        run.env, run.agent, agent_state, key, args["episodes"], keep_states=keep))
+    result = evaluate(state.agent, jax.random.PRNGKey(args["seed"]))
+    names = f"{run.config.run.agent} on {run.config.run.env}"
+    print(f"{names}, checkpoint step {step}, {args['episodes']} episodes")
+    print(f"{'goal':>24} {'episodes':>8} {'success':>8} {'final':>8} {'distance':>9}")
+    for row in success_per_goal(result, run.env.goal_dims):
+        goal = ", ".join(f"{g:.2f}" for g in row["goal"])
+        print(f"{goal:>24} {row['episodes']:>8} {row['success']:>8.2f} {row['final_success']:>8.2f} "
+              f"{row['final_distance']:>9.3f}")
+    print(f"overall success {float(result.success.mean()):.2f}")
+    if keep:
+        frames = render_episode(run.env, result.pipeline_states, args["video_episode"])
+        print(f"video: {write_video(frames, args['video'])} ({len(frames)} frames)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

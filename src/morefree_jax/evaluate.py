@@ -1,0 +1,145 @@
+"""Episodic evaluation on fresh env instances and the replay's visitation statistics.
+
+    result = evaluate_policy(env, agent, agent_state, key, num_episodes=10)   # jit at the caller
+    metrics = evaluation_metrics(result)
+    fraction, histogram = visitation(env, replay, bins=50)
+
+Evaluation follows PEG (agent.md 7.1): every episode starts from a fresh reset (the task's initial-state
+distribution) with a goal from `eval_goals`; the goal-conditioned policy acts deterministically (its mode),
+the latent is filtered from is_first; success is the task's `success` at ANY step of the episode (PEG's
+max over the episode), and we also report success at the last step and the final distance to the goal.
+Episodes are vmapped; the env steps run inside one lax.scan.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from morefree_jax.agent import MODE_DETERMINISTIC, MODE_GOAL
+
+
+class EvalResult(NamedTuple):
+    """Per episode (E,): success at any step, success at the last step, final and smallest distance to the
+    goal; goals (E, O). pipeline_states: the episodes' states over time (T, E, ...) when kept, else None."""
+
+    success: jax.Array
+    final_success: jax.Array
+    final_distance: jax.Array
+    min_distance: jax.Array
+    goals: jax.Array
+    pipeline_states: object = None
+
+
+def evaluate_policy(env, agent, agent_state, key: jax.Array, num_episodes: int,
+                    episode_length: int | None = None, keep_states: bool = False) -> EvalResult:
+    """num_episodes vmapped episodes of `episode_length` (default: the task's) steps -> EvalResult."""
+    length = episode_length or env.eval_episode_length
+    key_reset, key_goal, key_act = jax.random.split(key, 3)
+    env_states = jax.vmap(env.reset)(jax.random.split(key_reset, num_episodes))
+    goals = jax.vmap(env.eval_goals)(jax.random.split(key_goal, num_episodes))
+    act = jax.vmap(agent.act, in_axes=(None, 0, 0, 0, 0, 0, None))
+    mode = MODE_GOAL | MODE_DETERMINISTIC
+    carry = (env_states, agent.initial_latent((num_episodes,)), jnp.zeros((num_episodes, env.action_size)),
+             jnp.zeros(num_episodes, bool), jnp.full(num_episodes, jnp.inf))
+
+    def step(carry, key_step):
+        env_states, latent, prev_action, reached, closest = carry
+        action, latent = act(agent_state, latent, prev_action, env_states.obs, goals,
+                             jax.random.split(key_step, num_episodes), mode)
+        env_states = jax.vmap(env.step)(env_states, action)
+        reached = reached | jax.vmap(env.success)(env_states.obs, goals)
+        closest = jnp.minimum(closest, jax.vmap(env.goal_distance)(env_states.obs, goals))
+        kept = env_states.pipeline_state if keep_states else None
+        return (env_states, latent, action, reached, closest), kept
+
+    final, states = jax.lax.scan(step, carry, jax.random.split(key_act, length))
+    env_states, _, _, reached, closest = final
+    return EvalResult(
+        success=reached, final_success=jax.vmap(env.success)(env_states.obs, goals),
+        final_distance=jax.vmap(env.goal_distance)(env_states.obs, goals), min_distance=closest, goals=goals,
+        pipeline_states=states,
+    )
+
+
+def evaluation_metrics(result: EvalResult) -> dict:
+    """eval/success (PEG: any step), eval/final_success, eval/final_distance: means over episodes."""
+    return {
+        "eval/success": jnp.mean(result.success.astype(jnp.float32)),
+        "eval/final_success": jnp.mean(result.final_success.astype(jnp.float32)),
+        "eval/final_distance": jnp.mean(result.final_distance),
+        "eval/min_distance": jnp.mean(result.min_distance),
+    }
+
+
+def success_per_goal(result: EvalResult, goal_dims) -> list[dict]:
+    """Groups episodes by their goal (on goal_dims, rounded to 1e-4) -> [{goal, episodes, success,
+    final_success, final_distance}], for tasks with a few fixed goals (PointUMaze: 1, Tabletop: 4)."""
+    goals = np.round(np.asarray(result.goals)[:, list(goal_dims)], 4)
+    rows = []
+    for goal in np.unique(goals, axis=0):
+        mask = np.all(goals == goal, axis=1)
+        rows.append({
+            "goal": goal.tolist(), "episodes": int(mask.sum()),
+            "success": float(np.asarray(result.success)[mask].mean()),
+            "final_success": float(np.asarray(result.final_success)[mask].mean()),
+            "final_distance": float(np.asarray(result.final_distance)[mask].mean()),
+        })
+    return rows
+
+
+def visitation(env, replay, bins: int) -> tuple[jax.Array, jax.Array]:
+    """Over the transitions in the replay: the fraction that is task-relevant (near an initial state or an
+    evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation bounds."""
+    capacity = replay.obs.shape[0]
+    filled = jnp.arange(capacity) < jnp.minimum(replay.count, capacity)
+    total = jnp.maximum(jnp.sum(filled), 1)
+    relevant = jax.vmap(env.task_relevant)(replay.obs)
+    fraction = jnp.sum(relevant & filled) / total
+    xy = jax.vmap(env.xy)(replay.obs)
+    with jax.ensure_compile_time_eval():  # constants of the task, also when traced
+        low, high = (np.asarray(env.xy(jnp.asarray(b, jnp.float32))) for b in env.observation_bounds)
+    box = [[low[0], high[0]], [low[1], high[1]]]
+    weights = filled.astype(jnp.float32)
+    histogram, _, _ = jnp.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=box, weights=weights)
+    return fraction, histogram
+
+
+def render_episode(env, pipeline_states, episode: int = 0, width: int = 320, height: int = 240) -> np.ndarray:
+    """RGB frames (T, H, W, 3) of one episode of `EvalResult.pipeline_states` (T, E, ...), rendered by C
+    MuJoCo on the CPU (set MUJOCO_GL=egl on a headless machine)."""
+    states = jax.device_get(pipeline_states)
+    length = jax.tree.leaves(states)[0].shape[0]
+    frames = []
+    for t in range(length):
+        data = jax.tree.map(lambda x, t=t: x[t, episode], states)
+        frames.append(env.render(data, width=width, height=height))
+    return np.stack(frames)
+
+
+def write_video(frames: np.ndarray, path, fps: int = 20) -> str:
+    """Writes frames (T, H, W, 3): .mp4 when imageio is installed, an animated .gif with Pillow, else
+    .npy. Returns the path written (its suffix may differ from the one asked for)."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".mp4" and importlib.util.find_spec("imageio") is not None:
+        import imageio
+
+        imageio.mimwrite(path, list(frames), fps=fps)
+        return str(path)
+    if path.suffix in (".mp4", ".gif") and importlib.util.find_spec("PIL") is not None:
+        from PIL import Image
+
+        path = path.with_suffix(".gif")
+        images = [Image.fromarray(frame) for frame in frames]
+        images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+        return str(path)
+    path = path.with_suffix(".npy")
+    np.save(path, frames)
+    return str(path)

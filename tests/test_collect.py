@@ -1,0 +1,184 @@
+"""The fused chunk collection: phases, early switch, hard resets, goal choice; compiled once, no callbacks.
+
+Most tests drive collect_chunk with a scripted stand-in agent (known actions, a learned distance read from
+its "parameters", a planner score with a known optimum) so the numbers are exact; the last ones compile the
+real debug agent's chunk function of a run (shared with test_loop through loop_helpers).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from morefree_jax.agent import MODE_EXPLORE
+from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
+from morefree_jax.go_explore import GoalType, ScheduleConfig, init_schedule
+from morefree_jax.planner import PlannerConfig, peg_score, start_search
+from tests.conftest import cached_env
+from tests.loop_helpers import callback_primitives, debug_run, hlo_has_callback
+
+GO_ACTION = np.array([0.5, 0.0], np.float32)
+EXPLORE_ACTION = np.array([-0.5, 0.1], np.float32)
+TARGET = np.array([3.0, 5.0, 0.0, 0.0, 0.0, 0.0], np.float32)  # optimum of the stand-in planner score
+
+
+class ScriptedAgent(NamedTuple):
+    """Stand-in for agent.Agent. latent = number of observations filtered since the last reset;
+    goal_distance = agent_state["distance"]; planner score = -||candidate - TARGET||^2."""
+
+    def initial_latent(self, batch_shape=()):
+        return jnp.zeros(batch_shape, jnp.int32)
+
+    def act(self, state, latent, prev_action, obs, goal, key, mode):
+        explore = (jnp.asarray(mode) & MODE_EXPLORE) != 0
+        return jnp.where(explore, EXPLORE_ACTION, GO_ACTION), latent + 1
+
+    def goal_distance(self, state, latent, goal, obs=None):
+        return state["distance"]
+
+    def imagine_to_goals(self, state, start, goals, horizon, key):
+        return goals  # (G, O), the "trajectory" handed to exploration_value
+
+    def exploration_value(self, state, goals):
+        score = -jnp.sum(jnp.square(goals - TARGET), axis=-1)
+        return jnp.zeros((3, goals.shape[0])), jnp.broadcast_to(score, (2, goals.shape[0]))
+
+
+AGENT = ScriptedAgent()
+PLANNER = PlannerConfig(method="cem", num_candidates=200, iterations=6, init_std=3.0, horizon=2,
+                        use_last_steps=None, init_mean="current")
+
+
+@functools.cache
+def compiled_chunk(cfg: CollectConfig, schedule_cfg: ScheduleConfig):
+    env = cached_env("point_umaze")
+    return jax.jit(functools.partial(collect_chunk, env, AGENT, cfg, PLANNER, schedule_cfg))
+
+
+def fresh(schedule_cfg: ScheduleConfig):
+    env = cached_env("point_umaze")
+    return (init_stream(env, AGENT, jax.random.PRNGKey(1)), init_schedule(env.observation_size, schedule_cfg),
+            start_search(PLANNER, jnp.zeros(env.observation_size)))
+
+
+MAIN = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=37)
+BACK_AND_FORTH = ScheduleConfig(kind="back_and_forth", alpha=0.2, goal_update_every=3)
+
+
+def run_chunk(distance: float, cfg=MAIN, schedule_cfg=BACK_AND_FORTH, start=None, key=0):
+    stream, schedule, planner = start or fresh(schedule_cfg)
+    return compiled_chunk(cfg, schedule_cfg)({"distance": jnp.float32(distance)}, stream, schedule, planner,
+                                             jax.random.PRNGKey(key))
+
+
+def test_go_phase_lasts_h_g_steps_when_the_learned_distance_stays_above_threshold():
+    stream, _, _, transitions, metrics = run_chunk(distance=10.0)
+    actions, resets = np.asarray(transitions.action), np.asarray(transitions.reset)
+    assert metrics["go/steps"] == 50 and metrics["go/active_at_end"] == 0
+    assert np.flatnonzero(resets).tolist() == [0, 37, 74]  # stream positions 0, 37, 74
+    moved = ~resets
+    assert np.all(actions[:50][moved[:50]] == GO_ACTION)
+    assert np.all(actions[50:][moved[50:]] == EXPLORE_ACTION)
+    assert np.all(actions[resets] == 0.0)
+    assert int(stream.steps) == 100 and int(stream.latent) == 100 - 75  # filtered since the reset at 74
+
+
+def test_go_phase_switches_on_the_first_checked_step_below_threshold():
+    _, _, _, transitions, metrics = run_chunk(distance=1.0)
+    # step 0 is the hard reset (no check), step 1 is checked and switches
+    assert metrics["go/steps"] == 2
+    assert np.all(np.asarray(transitions.action)[2:][~np.asarray(transitions.reset)[2:]] == EXPLORE_ACTION)
+
+
+def test_replay_transitions_are_the_stream_observations_and_reset_starts_at_an_initial_state():
+    stream, _, _, transitions, _ = run_chunk(distance=10.0)
+    obs = np.asarray(transitions.obs)
+    assert np.allclose(obs[-1], np.asarray(stream.env_state.obs))
+    env = cached_env("point_umaze")
+    assert np.all(np.abs(obs[[0, 37, 74], :2]) <= 0.1)  # resets land on the initial-state box
+    assert bool(env.task_relevant(jnp.asarray(obs[37])))
+
+
+def test_planner_chunk_goal_comes_from_the_search():
+    schedule_cfg = ScheduleConfig(kind="planner", goal_update_every=3)
+    stream, schedule, planner, _, metrics = run_chunk(10.0, schedule_cfg=schedule_cfg)
+    assert metrics["goal/replanned"] == 1 and metrics["goal/type"] == GoalType.PLANNER
+    np.testing.assert_allclose(np.asarray(planner.mean), TARGET, atol=0.3)
+    np.testing.assert_allclose(np.asarray(stream.goal)[:2], TARGET[:2], atol=1.0)
+    # next chunk: no re-optimisation, a sample of the stored Gaussian
+    start = (stream, schedule, planner)
+    _, _, planner2, _, metrics2 = run_chunk(10.0, schedule_cfg=schedule_cfg, start=start)
+    assert metrics2["goal/replanned"] == 0
+    np.testing.assert_array_equal(np.asarray(planner2.mean), np.asarray(planner.mean))
+
+
+def test_episodic_goal_and_phases_span_the_hard_reset_segment():
+    cfg = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=200,
+                        episodic=True)
+    schedule_cfg = ScheduleConfig(kind="episodic_planner", goal_update_every=1)
+    start, goals, go_steps = fresh(schedule_cfg), [], []
+    for key in range(3):
+        stream, schedule, planner, _, metrics = run_chunk(10.0, cfg, schedule_cfg, start, key=key)
+        start = (stream, schedule, planner)
+        goals.append(np.asarray(stream.goal))
+        go_steps.append(float(metrics["go/steps"]))
+    assert go_steps == [100.0, 0.0, 100.0]  # first half of each 200-step segment goes
+    np.testing.assert_array_equal(goals[0], goals[1])
+    assert not np.array_equal(goals[1], goals[2])  # a new segment, a new goal
+
+
+def test_eval_only_without_explore_goes_the_whole_chunk_to_the_eval_goal():
+    cfg = CollectConfig(go_steps=100, explore_steps=0, subgoal_threshold=5.0, hard_reset_every=10**6,
+                        explore=False)
+    schedule_cfg = ScheduleConfig(kind="eval_only")
+    stream, _, _, transitions, metrics = run_chunk(0.0, cfg, schedule_cfg)
+    env = cached_env("point_umaze")
+    assert metrics["go/steps"] == 100 and metrics["goal/type"] == GoalType.EVAL
+    np.testing.assert_array_equal(np.asarray(stream.goal), np.asarray(env.eval_goals(jax.random.PRNGKey(0))))
+    assert np.all(np.asarray(transitions.action)[1:] == GO_ACTION)
+
+
+# ---- the real agent's chunk function (debug preset) ------------------------------------------------
+
+def test_callback_detector_sees_a_debug_callback():
+    def noisy(x):
+        def body(c, _):
+            jax.debug.callback(lambda v: None, c)
+            return c + 1, None
+        return jax.lax.scan(body, x, None, length=3)[0]
+
+    assert callback_primitives(jax.make_jaxpr(noisy)(1.0).jaxpr)
+    assert hlo_has_callback(jax.jit(noisy), 1.0)
+
+
+def test_chunk_function_compiles_once_and_has_no_host_callback():
+    run, state = debug_run("morefree")
+    jaxpr = jax.make_jaxpr(run._collect)(state)
+    assert not callback_primitives(jaxpr.jaxpr)
+    assert not hlo_has_callback(run.collect, state)
+    for _ in range(2):
+        state, metrics = run.collect(state)
+    assert run.collect._cache_size() == 1  # also after the restored runs of test_loop (same entry)
+    assert all(np.isfinite(np.asarray(v)).all() for v in metrics.values())
+
+
+def test_goal_scores_on_the_last_steps_equal_the_full_computation():
+    run, state = debug_run("morefree")
+    agent, candidates = run.agent, jax.random.uniform(jax.random.PRNGKey(3), (6, 6), minval=0.0, maxval=8.0)
+    config = PlannerConfig(horizon=12, use_last_steps=4)
+
+    @jax.jit
+    def both(agent_state, key):
+        start = agent.initial_latent()
+        trajectory = agent.imagine_to_goals(agent_state, start, candidates, config.horizon, key)
+        reward, returns = agent.exploration_value(agent_state, trajectory)
+        full = peg_score(reward, returns, config.use_last_steps)
+        return full, peg_goal_scores(agent, agent_state, start, candidates, config, key)
+
+    full, trimmed = both(state.agent, jax.random.PRNGKey(4))
+    assert np.all(np.isfinite(np.asarray(full))) and float(jnp.std(full)) > 0
+    np.testing.assert_allclose(np.asarray(trimmed), np.asarray(full), rtol=1e-5, atol=1e-5)

@@ -1,0 +1,183 @@
+"""Whole runs (debug preset, point_umaze): files, every variant, exact resume after SIGKILL, bad
+checkpoints, config refusal, Ctrl-C, bad CLI input.
+
+Runs share compiled functions through loop_helpers.debug_run (Run.with_run changes only host settings);
+the CLI subprocess loads this process's executables from the persistent compilation cache.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from experiments import train as train_cli
+from morefree_jax.checkpoint import ConfigMismatchError, latest_valid
+from morefree_jax.logger import read_metrics
+from morefree_jax.loop import prepare_run
+from morefree_jax.variants import VARIANTS
+from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_run
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+PREFILL = 20  # DEBUG_ARGS: prefill=20, then chunks of 100 steps
+TWO_CHUNKS, THREE_CHUNKS = PREFILL + 200, PREFILL + 300
+
+
+def train(agent: str, run_dir, total_steps: int, **changes):
+    run, _ = debug_run(agent)
+    return run.with_run(run_dir=str(run_dir), total_steps=total_steps, **changes).train(progress="off")
+
+
+def final_state(agent: str, run_dir):
+    run, template = debug_run(agent)
+    ignore = tuple(f"run.{key}" for key in run.HOST_ONLY_KEYS)  # debug_run's own run settings differ
+    restored = latest_valid(run_dir, template, run.config_dict, ignore_config_keys=ignore)
+    return restored.step, restored.state
+
+
+def records_without_time(run_dir) -> list[dict]:
+    return [{k: v for k, v in r.items() if not k.startswith("time/")}
+            for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
+
+
+@pytest.mark.parametrize("agent", list(VARIANTS))
+def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
+    summary = train(agent, tmp_path, TWO_CHUNKS)
+    assert summary.env_steps == TWO_CHUNKS and not summary.interrupted
+    config = json.loads((tmp_path / "config.json").read_text())
+    assert config["run"]["agent"] == agent and config["schedule"]["kind"] == VARIANTS[agent].schedule_kind
+    records = read_metrics(tmp_path / "metrics.jsonl")
+    assert [r["step"] for r in records if "wm/loss" in r] == [PREFILL + 100, TWO_CHUNKS]
+    assert any("eval/success" in r for r in records) and any("visitation/task_relevant" in r for r in records)
+    assert all(np.isfinite(v) for r in records for v in r.values())
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    assert list((tmp_path / "plots").glob("visitation_*.npy"))
+    assert sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit()) == [
+        PREFILL + 100, TWO_CHUNKS]
+    step, state = final_state(agent, tmp_path)
+    assert step == TWO_CHUNKS and int(state.stream.steps) == TWO_CHUNKS == int(state.replay.count)
+    assert int(state.agent.updates) == 5 + 2 * 5  # pretrain + 2 chunks of 100 / train_every 20
+
+
+def _start_cli(run_dir, steps: int) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
+           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    command = [sys.executable, "-m", "experiments.train", *DEBUG_ARGS, "agent=morefree", f"steps={steps}",
+               "checkpoint_every=200", f"run_dir={run_dir}"]
+    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
+    full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
+    train("morefree", full_dir, THREE_CHUNKS, checkpoint_every=200)
+    # A CLI run that would go on for 10 chunks is SIGKILLed once its checkpoint after chunk 2 is complete.
+    process = _start_cli(killed_dir, PREFILL + 1000)
+    manifest = killed_dir / "checkpoints" / str(TWO_CHUNKS) / "files.json"
+    deadline = time.monotonic() + 600
+    while not manifest.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert process.poll() is None, process.stderr.read().decode()[-2000:]
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    steps = sorted(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps == [TWO_CHUNKS], f"killed too late: {steps}"
+    # Resume (same config, longer budget ignored) and run one more chunk.
+    summary = train("morefree", killed_dir, THREE_CHUNKS, checkpoint_every=200)
+    assert summary.env_steps == THREE_CHUNKS
+    step_a, state_a = final_state("morefree", full_dir)
+    step_b, state_b = final_state("morefree", killed_dir)
+    assert step_a == step_b == THREE_CHUNKS
+    leaves_a, leaves_b = jax.tree.leaves(state_a), jax.tree.leaves(state_b)
+    assert len(leaves_a) == len(leaves_b)
+    unequal = [i for i, (a, b) in enumerate(zip(leaves_a, leaves_b, strict=True))
+               if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
+    assert not unequal, f"{len(unequal)} of {len(leaves_a)} state arrays differ"
+    assert records_without_time(full_dir) == records_without_time(killed_dir)
+
+
+def test_corrupted_checkpoint_is_named_and_the_previous_one_used(tmp_path, capsys):
+    train("morefree", tmp_path, TWO_CHUNKS)
+    bad_dir = tmp_path / "checkpoints" / str(TWO_CHUNKS)
+    biggest = max((p for p in bad_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    biggest.write_bytes(biggest.read_bytes()[: biggest.stat().st_size // 2])  # truncated on disk
+    summary = train("morefree", tmp_path, TWO_CHUNKS + 100)
+    err = capsys.readouterr().err
+    assert str(biggest) in err and f"using checkpoint {PREFILL + 100} instead" in err
+    assert (tmp_path / "checkpoints_bad" / str(TWO_CHUNKS)).exists()
+    assert summary.env_steps == TWO_CHUNKS + 100  # continued from 120: two more chunks
+    assert [r["step"] for r in read_metrics(tmp_path / "metrics.jsonl") if "wm/loss" in r] == [
+        PREFILL + 100, TWO_CHUNKS, TWO_CHUNKS + 100]
+
+
+def test_run_dir_with_a_different_config_is_refused(tmp_path):
+    train("morefree", tmp_path, PREFILL + 100)
+    before = (tmp_path / "metrics.jsonl").read_text()
+    other = prepare_run(debug_config("morefree", "wm.deter=16", f"run_dir={tmp_path}", "steps=220"))
+    with pytest.raises(ConfigMismatchError, match=r"agent\.wm\.deter: 32 -> 16"):
+        other.train(progress="off")
+    assert (tmp_path / "metrics.jsonl").read_text() == before  # nothing destroyed
+
+
+def test_ctrl_c_finishes_the_chunk_saves_and_stops(tmp_path):
+    metrics = tmp_path / "metrics.jsonl"
+
+    def interrupt_after_first_log():
+        while not (metrics.exists() and metrics.read_text()):
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt_after_first_log, daemon=True).start()
+    summary = train("morefree", tmp_path, PREFILL + 5000)
+    assert summary.interrupted and summary.env_steps < PREFILL + 5000
+    assert (tmp_path / "checkpoints" / str(summary.env_steps)).exists()
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["env=maze"], "unknown env 'maze'; valid envs: point_umaze"),
+    (["agent=sac"], "unknown agent 'sac'; valid agents: morefree, rf_peg, peg, dreamer_gc"),
+    (["preset=huge"], "unknown preset 'huge'; valid presets: paper, cpu, debug"),
+    (["wm.detr=3"], "unknown key 'agent.wm.detr'; valid keys at 'agent.wm': deter"),
+    (["steps=many"], "steps expects int, got 'many'"),
+    (["steps=-5"], "steps must be > 0"),
+    (["planner.iterations=x"], "planner.iterations expects int"),
+])
+def test_bad_cli_input_exits_2_with_one_line(arguments, message, capsys):
+    assert train_cli.main(["env=point_umaze", "agent=morefree", *arguments]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+def test_bad_cli_input_exit_code_in_a_subprocess():
+    command = [sys.executable, "-m", "experiments.train", "env=point_umaze", "steps=0"]
+    result = subprocess.run(command, cwd=REPO, env={**os.environ, "PYTHONPATH": "src:."}, capture_output=True,
+                            text=True)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == "error: steps must be > 0, got 0"
+
+
+def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
+    train("morefree", tmp_path, PREFILL + 100)
+    video = tmp_path / "episode.gif"
+    command = [sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path}", "episodes=3",
+               f"video={video}"]
+    env = {**os.environ, "PYTHONPATH": "src:.", "MUJOCO_GL": "egl",
+           "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE}
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"checkpoint step {PREFILL + 100}, 3 episodes" in result.stdout
+    goal_row = next(line for line in result.stdout.splitlines() if line.strip().startswith("0.00, 8.00"))
+    assert goal_row.split()[2] == "3"  # point_umaze: one goal (0, 8), all 3 episodes
+    written = pathlib.Path(result.stdout.split("video: ")[1].split()[0])
+    assert written.exists() and written.stat().st_size > 1000
+    bad = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path / 'nope'}"],
+                         cwd=REPO, env=env, capture_output=True, text=True)
+    assert bad.returncode == 2 and "is not a run dir" in bad.stderr

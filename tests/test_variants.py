@@ -1,0 +1,80 @@
+"""Named agents and the root config they resolve to (no compilation)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs_mjx
+from morefree_jax.config_run import Config, ConfigError, config_from_dict, config_to_dict, resolve_config
+from morefree_jax.imagination import SOURCE_EVAL, GoalPools, sample_imagination_goals
+from morefree_jax.variants import VARIANTS, variant
+
+# (schedule kind, collection alpha, imagination alpha, explore policy) per the issue and the paper.
+EXPECTED = {
+    "morefree": ("back_and_forth", 0.2, 0.2, True),
+    "rf_peg": ("planner", 0.0, 0.0, True),
+    "peg": ("episodic_planner", 0.0, 0.0, True),
+    "dreamer_gc": ("eval_only", 0.0, 2.0, False),
+    "mf_no_bfge": ("planner", 0.0, 0.2, True),
+    "mf_no_imag": ("back_and_forth", 0.2, 0.0, True),
+    "mf_task_only": ("back_and_forth", 1.0, 1.0, True),
+}
+
+
+def resolve(*arguments):
+    return resolve_config(list(arguments), envs_mjx.ALL_ENVS)
+
+
+@pytest.mark.parametrize("name", list(EXPECTED))
+def test_variant_sets_collection_and_imagination_goals(name):
+    config = resolve("env=point_umaze", f"agent={name}", "preset=debug")
+    kind, collect_alpha, imagination_alpha, explore = EXPECTED[name]
+    assert (config.schedule.kind, config.schedule.alpha, config.agent.alpha) == (kind, collect_alpha,
+                                                                                 imagination_alpha)
+    assert variant(name).explore is explore
+
+
+def test_every_variant_is_covered_and_unknown_names_list_the_valid_ones():
+    assert set(VARIANTS) == set(EXPECTED)
+    with pytest.raises(ValueError, match="unknown agent 'moorfree'; valid agents: morefree, rf_peg, peg"):
+        variant("moorfree")
+
+
+def test_dreamer_gc_imagines_only_evaluation_goals():
+    config = resolve("env=point_umaze", "agent=dreamer_gc", "preset=debug")
+    pools = GoalPools(jnp.ones((3, 6)), 2 * jnp.ones((3, 6)))
+    _, source = sample_imagination_goals(jax.random.PRNGKey(0), jnp.zeros((500, 6)), pools,
+                                         config.agent.alpha, 500)
+    assert np.all(np.asarray(source) == SOURCE_EVAL)
+
+
+def test_layers_preset_task_planner_variant_then_overrides():
+    config = resolve("env=point_umaze", "agent=morefree", "preset=cpu", "seed=3", "steps=5e4",
+                     "wm.deter=64", "schedule.alpha=0.3", "planner.goal_update_every=7", "eval_every=500")
+    assert config.agent.wm.deter == 64 and config.agent.wm.stoch == 32  # cpu preset underneath
+    assert config.planner.method == "cem" and config.planner.horizon == 50  # point_umaze planner defaults
+    assert config.schedule.alpha == 0.3 and config.agent.alpha == 0.2  # override beats the variant
+    assert config.schedule.goal_update_every == config.planner.goal_update_every == 7  # one setting
+    assert (config.run.seed, config.run.total_steps, config.run.eval_every) == (3, 50_000, 500)
+    assert config_from_dict(Config, config_to_dict(config)) == config
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["env=maze"], "unknown env 'maze'; valid envs: point_umaze"),
+    (["agent=sac"], "unknown agent 'sac'; valid agents: morefree"),
+    (["preset=huge"], "unknown preset 'huge'; valid presets: paper, cpu, debug"),
+    (["wm.detr=3"], "unknown key 'agent.wm.detr'; valid keys at 'agent.wm': deter"),
+    (["colour=red"], "unknown key 'colour'; valid keys: env, agent, preset, seed, steps"),
+    (["steps=lots"], "steps expects int, got 'lots'"),
+    (["steps=0"], "steps must be > 0, got 0"),
+    (["seed=1.5"], "seed expects int"),
+    (["planner.init_std=nan"], "finite"),
+    (["alpha=0.1"], "ambiguous"),
+])
+def test_bad_input_is_a_one_line_error_naming_what_is_valid(arguments, message):
+    with pytest.raises(ConfigError) as error:
+        resolve("env=point_umaze", "agent=morefree", *arguments)
+    assert message in str(error.value) and "\n" not in str(error.value)
