@@ -81,9 +81,9 @@ def bench_train(name: str, reps: int, peak: float) -> list[dict]:
     start = time.perf_counter()
     compiled = jax.jit(agent.train_step).lower(state, batch, pools, key).compile()
     compile_s = time.perf_counter() - start
-    flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
     compiled(state, batch, pools, key)  # warm-up
     step_s = _time(compiled, state, batch, pools, key, reps=reps)
+    flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
     rows = [
         _row(f"{name}/train_step_compile", compile_s, "s"),
         _row(f"{name}/train_step", step_s * 1e3, "ms", "all five learners"),
