@@ -126,6 +126,9 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
     key = jax.random.PRNGKey(0)
     jax.block_until_ready(act(state, latent, prev, obs, goal, key, MODE_GOAL))
     call_s = _time(act, state, latent, prev, obs, goal, key, MODE_GOAL, reps=200)
+    call_row = _row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call incl. dispatch")
+    if steps == 0:
+        return [call_row]
 
     @jax.jit
     def rollout(state, key):
@@ -138,15 +141,16 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
 
     jax.block_until_ready(rollout(state, key))
     scan_s = _time(rollout, state, key, reps=3) / steps
-    return [_row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call incl. dispatch"),
-            _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
+    return [call_row, _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
 
 
 def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: int = 3) -> list[dict]:
+    if quick:  # smoke test: the matmul peak and one act call of the debug preset
+        peak = matmul_peak(1024, reps=3)
+        peak_row = _row("matmul_peak_1024", peak / 1e9, "GFLOP/s", "f32 1024^3 under jit")
+        return [peak_row, *bench_act("debug", 0)]
     peak = matmul_peak()
     rows = [_row("matmul_peak_2048", peak / 1e9, "GFLOP/s", "f32 2048^3 under jit, same run")]
-    if quick:
-        return rows + bench_act("debug", steps=100)
     for name in presets:
         rows += bench_act(name)
         rows += bench_train(name, reps if name != "paper" else 1, peak)
