@@ -81,9 +81,9 @@ def bench_train(name: str, reps: int, peak: float) -> list[dict]:
     start = time.perf_counter()
     compiled = jax.jit(agent.train_step).lower(state, batch, pools, key).compile()
     compile_s = time.perf_counter() - start
-    flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
     compiled(state, batch, pools, key)  # warm-up
     step_s = _time(compiled, state, batch, pools, key, reps=reps)
+    flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
     rows = [
         _row(f"{name}/train_step_compile", compile_s, "s"),
         _row(f"{name}/train_step", step_s * 1e3, "ms", "all five learners"),
@@ -126,6 +126,9 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
     key = jax.random.PRNGKey(0)
     jax.block_until_ready(act(state, latent, prev, obs, goal, key, MODE_GOAL))
     call_s = _time(act, state, latent, prev, obs, goal, key, MODE_GOAL, reps=200)
+    call_row = _row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call incl. dispatch")
+    if steps == 0:
+        return [call_row]
 
     @jax.jit
     def rollout(state, key):
@@ -138,15 +141,16 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
 
     jax.block_until_ready(rollout(state, key))
     scan_s = _time(rollout, state, key, reps=3) / steps
-    return [_row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call incl. dispatch"),
-            _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
+    return [call_row, _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
 
 
 def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: int = 3) -> list[dict]:
+    if quick:  # smoke test: the matmul peak and one act call of the debug preset
+        peak = matmul_peak(1024, reps=3)
+        peak_row = _row("matmul_peak_1024", peak / 1e9, "GFLOP/s", "f32 1024^3 under jit")
+        return [peak_row, *bench_act("debug", 0)]
     peak = matmul_peak()
     rows = [_row("matmul_peak_2048", peak / 1e9, "GFLOP/s", "f32 2048^3 under jit, same run")]
-    if quick:
-        return rows + bench_act("debug", steps=100)
     for name in presets:
         rows += bench_act(name)
         rows += bench_train(name, reps if name != "paper" else 1, peak)
