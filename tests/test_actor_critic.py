@@ -86,3 +86,24 @@ def test_trunc_normal_entropy_and_reparameterised_sample():
     assert 0.9 < float(jax.grad(mean_sample)(0.0)) < 1.1  # d E[x] / d loc ~ 1 away from the bounds
     samples = TruncNormal(jnp.full(20_000, 0.9), jnp.full(20_000, 0.5)).sample(jax.random.PRNGKey(1))
     assert float(samples.max()) < 1.0 and float(samples.min()) > -1.0
+
+
+def test_trunc_normal_sample_gradient_finite_when_uniform_draw_hits_a_saturated_bound(monkeypatch):
+    """loc 0.5, scale 0.1: the lower bound is 15 std away, erf rounds it to -1 in float32; a uniform draw
+    of exactly 0 used to give erf_inv(-1) = -inf and a NaN actor gradient (point_umaze run at ~6500 steps)."""
+    from morefree_jax.networks import TruncNormal
+
+    lowest_draw = lambda key, shape, minval, maxval: jnp.broadcast_to(minval, shape)  # noqa: E731
+    monkeypatch.setattr(jax.random, "uniform", lowest_draw)
+
+    def sample_sum(loc, scale):
+        return jnp.sum(TruncNormal(loc, scale).sample(jax.random.PRNGKey(0)))
+
+    loc, scale = jnp.array([0.5, -0.3]), jnp.array([0.1, 0.1])
+    value = sample_sum(loc, scale)
+    grads = jax.grad(sample_sum, argnums=(0, 1))(loc, scale)
+    assert np.isfinite(float(value))
+    assert np.all(np.isfinite(np.asarray(grads[0]))) and np.all(np.isfinite(np.asarray(grads[1])))
+    # The lowest draw lands ~5.42 std below loc (the float32 limit of erf_inv; both bounds are further).
+    np.testing.assert_allclose(np.asarray(TruncNormal(loc, scale).sample(jax.random.PRNGKey(0))),
+                               [0.5 - 0.542, -0.3 - 0.542], atol=2e-3)

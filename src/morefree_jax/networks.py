@@ -24,6 +24,8 @@ import optax
 from morefree_jax.config import OptimizerConfig
 
 HALF_LOG_2PI_E = 0.5 * jnp.log(2.0 * jnp.pi * jnp.e)
+SQRT2 = 2.0**0.5
+ERF_INV_LIMIT = 1.0 - 2.0**-24  # the largest float32 below 1: erf_inv stays finite (~3.83)
 
 
 class Latent(NamedTuple):
@@ -192,7 +194,16 @@ class TruncNormal(NamedTuple):
     def sample(self, key: jax.Array) -> jax.Array:
         """Reparameterised inverse-CDF sample, clipped to [-1+1e-6, 1-1e-6] with a straight-through grad."""
         alpha, beta = self._bounds()
-        z = jax.random.truncated_normal(key, alpha, beta, self.loc.shape)
+        # Inverse CDF by hand instead of jax.random.truncated_normal: when a bound is beyond ~5.5 std,
+        # erf(bound) rounds to +-1 in float32, and a uniform draw of exactly 0 then gives u = -1,
+        # erf_inv(u) = -inf; the output clip hides it in the forward pass, but the backward pass
+        # computes 0 * inf = NaN (this NaN'd the exploration actor of a point_umaze run at ~6500 steps).
+        # Keeping u strictly inside (-1, 1) keeps erf_inv and its derivative finite.
+        a = jax.scipy.special.erf(alpha / SQRT2)
+        b = jax.scipy.special.erf(beta / SQRT2)
+        u = jax.random.uniform(key, self.loc.shape, minval=a, maxval=b)
+        u = jnp.clip(u, -ERF_INV_LIMIT, ERF_INV_LIMIT)
+        z = jnp.clip(SQRT2 * jax.scipy.special.erfinv(u), alpha, beta)
         x = self.loc + self.scale * z
         clipped = jnp.clip(x, -1.0 + 1e-6, 1.0 - 1e-6)
         return x + jax.lax.stop_gradient(clipped - x)
