@@ -11,14 +11,15 @@ from morefree_jax.config import preset
 from morefree_jax.imagination import GoalPools
 from tests.core_helpers import fixed_batch
 
-SPEC = EnvSpec(obs_size=4, action_size=2, goal_dims=(0, 1))
 TRACES = {"train_step": 0, "act": 0}
 
 
 @functools.cache
 def setup():
     cfg = preset("debug")
-    agent = make_agent(cfg, SPEC)
+    batch = fixed_batch(cfg.replay.batch, cfg.replay.length)
+    obs_size = batch.obs.shape[-1]  # point_umaze's once registered, else the stand-in's
+    agent = make_agent(cfg, EnvSpec(obs_size=obs_size, action_size=2, goal_dims=(0, 1)))
 
     def counted_train_step(*args):
         TRACES["train_step"] += 1
@@ -28,8 +29,7 @@ def setup():
         TRACES["act"] += 1
         return agent.act(*args)
 
-    pools = GoalPools(jnp.full((3, 4), 0.5), jnp.zeros((2, 4)))
-    batch = fixed_batch(cfg.replay.batch, cfg.replay.length)
+    pools = GoalPools(jnp.full((3, obs_size), 0.5), jnp.zeros((2, obs_size)))
     seeds_step = jax.jit(jax.vmap(counted_train_step, in_axes=(0, None, None, 0)))
     return agent, seeds_step, jax.jit(counted_act), batch, pools
 
@@ -70,7 +70,9 @@ def test_train_step_traces_once_keeps_structure_is_deterministic_and_vmaps_over_
 def test_act_single_env_and_vmapped_modes():
     agent, train_step, act, batch, pools = setup()
     state = agent.init(jax.random.PRNGKey(3))
-    obs, goal = jnp.array([0.1, 0.2, 0.0, 0.0]), jnp.array([0.5, 0.5, 0.0, 0.0])
+    obs_size = batch.obs.shape[-1]
+    obs = jnp.zeros(obs_size).at[:2].set(jnp.array([0.1, 0.2]))
+    goal = jnp.zeros(obs_size).at[:2].set(jnp.array([0.5, 0.5]))
     latent = agent.initial_latent(())
     prev = jnp.zeros(2)
     for mode in [MODE_GOAL, MODE_EXPLORE]:
@@ -98,9 +100,9 @@ def test_act_single_env_and_vmapped_modes():
 
 
 def test_planner_building_blocks_shapes():
-    agent, *_ = setup()
+    agent, _, _, batch, _ = setup()
     state = agent.init(jax.random.PRNGKey(4))
-    goals = jax.random.uniform(jax.random.PRNGKey(5), (6, 4))
+    goals = jax.random.uniform(jax.random.PRNGKey(5), (6, batch.obs.shape[-1]))
     traj = jax.jit(agent.imagine_to_goals, static_argnums=3)(state, agent.initial_latent(()), goals, 7,
                                                            jax.random.PRNGKey(6))
     assert traj.feat.shape[:2] == (8, 6) and traj.action.shape == (8, 6, 2)
