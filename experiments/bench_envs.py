@@ -35,7 +35,7 @@ def _fused_rollout(env, key, num_steps: int):
         return state, None
 
     final, _ = jax.lax.scan(body, env.reset(key_reset), actions)
-    return final.obs
+    return final  # the whole state: returning only obs would let XLA drop unused pipeline_state work
 
 
 def time_call(fn, *args) -> float:
