@@ -359,6 +359,11 @@ def resolve_config(arguments, valid_envs) -> Config:
     for key in ("env", "agent", "preset"):  # identity keys may also arrive dotted (run.env=...)
         check_choice(key, getattr(config.run, key), {"env": valid_envs, "agent": VARIANTS,
                                                      "preset": PRESETS}[key])
+    if config.run.subgoal_threshold is None:  # resolve the per-task default so config.json records it
+        from morefree_jax.collect import DEFAULT_SUBGOAL_THRESHOLD, SUBGOAL_THRESHOLDS
+
+        threshold = SUBGOAL_THRESHOLDS.get(config.run.env, DEFAULT_SUBGOAL_THRESHOLD)
+        config = dataclasses.replace(config, run=dataclasses.replace(config.run, subgoal_threshold=threshold))
     if config.schedule.goal_update_every != config.planner.goal_update_every and config.run.agent != "peg":
         raise ConfigError("planner.goal_update_every and schedule.goal_update_every differ; set one of them")
     return config
