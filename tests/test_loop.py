@@ -17,13 +17,14 @@ import threading
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from experiments import train as train_cli
 from morefree_jax.checkpoint import ConfigMismatchError, latest_valid
 from morefree_jax.logger import read_metrics
-from morefree_jax.loop import prepare_run
+from morefree_jax.loop import keep_if_finite, prepare_run
 from morefree_jax.variants import VARIANTS
 from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_run
 
@@ -181,3 +182,13 @@ def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path / 'nope'}"],
                          cwd=REPO, env=env, capture_output=True, text=True)
     assert bad.returncode == 2 and "is not a run dir" in bad.stderr
+
+
+def test_a_non_finite_update_is_dropped():
+    old = {"w": jnp.ones(3), "count": jnp.asarray(4, jnp.int32)}
+    good = {"w": jnp.full(3, 2.0), "count": jnp.asarray(5, jnp.int32)}
+    bad = {"w": jnp.array([2.0, jnp.nan, 2.0]), "count": jnp.asarray(5, jnp.int32)}
+    kept, finite = jax.jit(keep_if_finite)(good, old)
+    assert bool(finite) and float(kept["w"][0]) == 2.0 and int(kept["count"]) == 5
+    kept, finite = jax.jit(keep_if_finite)(bad, old)
+    assert not bool(finite) and np.all(np.asarray(kept["w"]) == 1.0) and int(kept["count"]) == 4

@@ -158,8 +158,9 @@ def _check_files(step_dir: pathlib.Path) -> None:
 
 @contextlib.contextmanager
 def _interrupts_deferred():
-    """A Ctrl-C during a save lets the save finish, then raises KeyboardInterrupt (main thread only;
-    elsewhere, and for SIGKILL, orbax's tmp-dir + rename keeps the checkpoint dir consistent)."""
+    """A Ctrl-C during a save lets the save finish, then is handed to the SIGINT handler that was in place
+    (Python's default raises KeyboardInterrupt; a training loop's own handler may stop after the chunk).
+    Main thread only; elsewhere, and for SIGKILL, orbax's tmp-dir + rename keeps the dir consistent."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -170,7 +171,10 @@ def _interrupts_deferred():
     finally:
         signal.signal(signal.SIGINT, previous)
     if received:
-        raise KeyboardInterrupt
+        if callable(previous) and previous is not signal.default_int_handler:
+            previous(signal.SIGINT, None)
+        else:
+            raise KeyboardInterrupt
 
 
 def _write_json_atomically(path: pathlib.Path, payload: dict) -> None:

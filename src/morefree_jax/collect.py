@@ -14,9 +14,12 @@ whose stream position is a multiple of `hard_reset_every` (that step stores the 
 zero action and reset=True, and zeroes the latent: an is_first step).
 
 Early switch threshold. The learned distance is in env steps (D x imagination horizon, agent.md 2.3), so
-the threshold is a number of steps, not a radius: we keep PEG's per-task `subgoal_threshold` (point maze 5,
-ant maze 2, block stacking 1; agent.md 5.1) for the MoReFree task closest to each PEG task, 2 elsewhere.
-A task's own success radius decides only the logged `go/reached` (env.success during the go phase).
+the threshold is a number of steps, not a radius. Rule: the number of steps that covers the task's success
+radius, at least 1: point_umaze moves at most 1 unit per step and succeeds within 0.6, so 1 step. Where a
+PEG task is close we take PEG's `subgoal_threshold` (agent.md 5.1): ant maze 2, block stacking 1 (Fetch);
+2 elsewhere. (PEG's point-maze value 5 made the go phase end after one step in most chunks of our first
+point_umaze runs: with no negative pairs the distance of far goals sits near 0.3 x 15 = 4.7 steps.)
+A task's own success radius decides the logged `go/reached` (env.success during the go phase).
 
 Episodic PEG (`episodic=True`): the goal is chosen once per hard-reset segment; the go phase spans the
 first half of the segment and the explore phase the rest, carried across chunks.
@@ -36,8 +39,8 @@ from morefree_jax.go_explore import GoalChoice, GoalType, ScheduleConfig, commit
 from morefree_jax.go_explore import schedule_metrics as _schedule_metrics
 from morefree_jax.planner import PlannerConfig, peg_score, plan_goal, start_search
 
-# Learned-distance threshold (env steps) for the early switch, from PEG's closest task (agent.md 5.1).
-SUBGOAL_THRESHOLDS = {"point_umaze": 5.0, "ant": 2.0, "push": 1.0, "pick_place": 1.0, "push_hard": 1.0,
+# Learned-distance threshold (env steps) for the early switch (see the module docstring).
+SUBGOAL_THRESHOLDS = {"point_umaze": 1.0, "ant": 2.0, "push": 1.0, "pick_place": 1.0, "push_hard": 1.0,
                       "pick_place_hard": 1.0}
 DEFAULT_SUBGOAL_THRESHOLD = 2.0
 

@@ -1,11 +1,19 @@
-"""Run settings and generic tools for trees of frozen dataclasses: dotted overrides, dict round trip.
+"""The root config of a run and the generic tools for trees of frozen dataclasses.
 
-    config = apply_overrides(config, ["wm.deter=64", "planner.iterations=3", "run.seed=1"])
-    json.dumps(config_to_dict(config))  ->  config_from_dict(type(config), loaded)
+    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu", "wm.deter=64"], ALL_ENVS)
+    config.run / config.agent / config.planner / config.schedule     # RunConfig, AgentConfig (config.py),
+                                                                     # PlannerConfig, ScheduleConfig
+    json.dumps(config_to_dict(config))  ->  config_from_dict(Config, loaded)
 
-The tools work on any nested frozen dataclass tree (the lead merges them into config.py). Values are parsed
-by the field's annotated type: int, float, bool, str, tuple[X, ...] / tuple[X, Y], X | None, Literal[...],
-and nested dataclasses. Every error is a one-line ConfigError saying what was wrong and what is valid.
+`Config` is the ONE config a run has and writes to config.json: the run settings (RunConfig, here), the
+learner (AgentConfig and its presets, config.py), the goal search (PlannerConfig, planner.py) and the goal
+schedule (ScheduleConfig, go_explore.py); each part stays next to the code it configures. `resolve_config`
+layers defaults < preset < the task's planner defaults < the variant (variants.py) < dotted overrides.
+
+The tools (apply_overrides, config_to_dict / config_from_dict, valid_keys) work on any frozen-dataclass
+tree. Values are parsed by the field's annotated type: int, float, bool, str, tuple[X, ...] / tuple[X, Y],
+X | None, Literal[...], and nested dataclasses. Every error is a one-line ConfigError saying what was
+wrong and what is valid.
 """
 
 from __future__ import annotations
@@ -351,6 +359,11 @@ def resolve_config(arguments, valid_envs) -> Config:
     for key in ("env", "agent", "preset"):  # identity keys may also arrive dotted (run.env=...)
         check_choice(key, getattr(config.run, key), {"env": valid_envs, "agent": VARIANTS,
                                                      "preset": PRESETS}[key])
+    if config.run.subgoal_threshold is None:  # resolve the per-task default so config.json records it
+        from morefree_jax.collect import DEFAULT_SUBGOAL_THRESHOLD, SUBGOAL_THRESHOLDS
+
+        threshold = SUBGOAL_THRESHOLDS.get(config.run.env, DEFAULT_SUBGOAL_THRESHOLD)
+        config = dataclasses.replace(config, run=dataclasses.replace(config.run, subgoal_threshold=threshold))
     if config.schedule.goal_update_every != config.planner.goal_update_every and config.run.agent != "peg":
         raise ConfigError("planner.goal_update_every and schedule.goal_update_every differ; set one of them")
     return config

@@ -63,8 +63,13 @@ class RunSummary(NamedTuple):
     run_dir: str
 
 
-def _mean_metrics(metrics: dict) -> dict:
-    return {name: jnp.mean(value) for name, value in metrics.items()}
+def keep_if_finite(new_state, old_state):
+    """(new_state if every array in it is finite else old_state, finite?). A non-finite update (seen
+    rarely in the exploration actor's gradient with the cpu preset) is dropped instead of poisoning every
+    later update and, through the policy, the stream and the replay."""
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new_state)
+                                if jnp.issubdtype(x.dtype, jnp.inexact)]))
+    return jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, old_state), finite
 
 
 class Run:
@@ -159,10 +164,16 @@ class Run:
 
         def update(agent_state, inputs):
             batch, key_step = inputs
-            return self.agent.train_step(agent_state, batch, pools, key_step)
+            new_state, metrics = self.agent.train_step(agent_state, batch, pools, key_step)
+            new_state, finite = keep_if_finite(new_state, agent_state)
+            return new_state, (metrics, finite)
 
-        agent_state, metrics = jax.lax.scan(update, state.agent, (batches, jax.random.split(key_steps, num)))
-        return state.replace(agent=agent_state, key=key), _mean_metrics(metrics)
+        agent_state, (metrics, finite) = jax.lax.scan(update, state.agent,
+                                                      (batches, jax.random.split(key_steps, num)))
+        kept = jnp.maximum(jnp.sum(finite), 1)
+        means = {name: jnp.sum(jnp.where(finite, value, 0.0)) / kept for name, value in metrics.items()}
+        means["train/skipped_nonfinite"] = jnp.sum(~finite).astype(jnp.float32)
+        return state.replace(agent=agent_state, key=key), means
 
     def _evaluate(self, agent_state, key):
         result = evaluate_policy(self.env, self.agent, agent_state, key, self.config.run.eval_episodes)
