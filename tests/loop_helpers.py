@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import os
 import pathlib
+import re
 import tempfile
 
 import jax
@@ -66,6 +67,7 @@ def callback_primitives(jaxpr) -> set[str]:
 
 
 def hlo_has_callback(jitted, *args) -> bool:
-    """Whether the compiled HLO calls back into Python (custom calls to the Python callback targets)."""
-    text = jitted.lower(*args).compile().as_text().lower()
-    return "callback" in text
+    """Whether the compiled HLO calls back into Python: a custom call whose target is a Python callback
+    (only the targets are searched: op metadata names source functions, which may say "callback")."""
+    text = jitted.lower(*args).compile().as_text()
+    return any("callback" in target.lower() for target in re.findall(r'custom_call_target="([^"]+)"', text))
