@@ -82,6 +82,20 @@ class AgentState:
     updates: jax.Array  # train steps done so far (int32); drives the target-critic copies
 
 
+def acting_state(state: AgentState) -> AgentState:
+    """The part of `state` that `act` reads: world-model and actor parameters; every other field is None.
+
+    `act` gives the same result on it. A jitted call flattens its arguments on every dispatch, so a
+    Python-side acting loop should pass this (58 leaves at `cpu`) rather than the whole state with its
+    optimiser moments (326 leaves): measured 0.15 ms instead of 0.33 ms per call (experiments/bench_core.py).
+    """
+    def params_only(net: NetState) -> NetState:
+        return NetState(net.params, None)
+
+    return AgentState(params_only(state.wm), params_only(state.gc_actor), None, None, None,
+                      params_only(state.explore_actor), None, state.updates)
+
+
 class Agent(NamedTuple):
     """Pure functions of the agent (see the module docstring) and the pieces they are built from."""
 

@@ -21,6 +21,7 @@ from morefree_jax.networks import (
     Latent,
     NetState,
     apply_gradients,
+    elu,
     feature,
     init_net_state,
     make_optimizer,
@@ -55,14 +56,14 @@ def ensemble_predict(ens: Ensemble, params, inputs: jax.Array) -> jax.Array:
     members, in_size, width = layers[0]["kernel"].shape
     flat = inputs.reshape(-1, in_size)
     kernel = jnp.transpose(layers[0]["kernel"], (1, 0, 2)).reshape(in_size, members * width)
-    h = jax.nn.elu(flat @ kernel + layers[0]["bias"].reshape(-1))
+    h = elu(flat @ kernel + layers[0]["bias"].reshape(-1))
     h = jnp.transpose(h.reshape(-1, members, width), (1, 0, 2))  # (K, M, h)
 
     def rest(member_layers, h):
         for i, layer in enumerate(member_layers):
             h = h @ layer["kernel"] + layer["bias"]
             if i < len(member_layers) - 1:
-                h = jax.nn.elu(h)
+                h = elu(h)
         return h
 
     out = jax.vmap(rest)(layers[1:], h)

@@ -42,6 +42,24 @@ class Gaussian(NamedTuple):
     std: jax.Array
 
 
+@jax.custom_jvp
+def elu(x: jax.Array) -> jax.Array:
+    """ELU (alpha 1), the activation of every network here; same values as `jax.nn.elu`.
+
+    Its derivative is written with the output (1 where x > 0, else y + 1 = exp(x)), so the backward pass
+    reuses y instead of evaluating exp(x) again: ELU passes over (N, 400) activations are a large share of
+    a train step on CPU.
+    """
+    return jnp.where(x > 0, x, jnp.expm1(jnp.minimum(x, 0.0)))
+
+
+@elu.defjvp
+def _elu_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    y = elu(x)
+    return y, dx * jnp.where(x > 0, 1.0, y + 1.0)
+
+
 def feature(latent: Latent) -> jax.Array:
     """feat = concat(stoch, deter) (..., S + D)."""
     return jnp.concatenate([latent.stoch, latent.deter], -1)
@@ -68,7 +86,7 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.layers:
-            x = nn.elu(nn.Dense(width)(x))
+            x = elu(nn.Dense(width)(x))
         if self.out is not None:
             x = nn.Dense(self.out)(x)
         return x
@@ -99,9 +117,9 @@ class ContextMLP(nn.Module):
         h = self.first(x)
         if projection is not None:
             h = h + projection
-        h = nn.elu(h)
+        h = elu(h)
         for layer in self.hidden:
-            h = nn.elu(layer(h))
+            h = elu(layer(h))
         return self.head(h)
 
     def __call__(self, x: jax.Array, context: jax.Array | None = None) -> jax.Array:
@@ -147,18 +165,18 @@ class RSSM(nn.Module):
 
     def deter_step(self, prev: Latent, action: jax.Array) -> jax.Array:
         """The recurrent part of img_step: new deter from (prev stoch, prev deter, action)."""
-        x = nn.elu(self.img_in(jnp.concatenate([prev.stoch, action], -1)))
+        x = elu(self.img_in(jnp.concatenate([prev.stoch, action], -1)))
         return self.gru(x, prev.deter)
 
     def prior_stats(self, deter: jax.Array) -> Gaussian:
-        return self._stats(self.img_stats(nn.elu(self.img_out(deter))))
+        return self._stats(self.img_stats(elu(self.img_out(deter))))
 
     def embed_projection(self, embed: jax.Array) -> jax.Array:
         """The embedding's share of the posterior's first layer (computable for all steps at once)."""
         return self.obs_embed(embed)
 
     def posterior_stats(self, deter: jax.Array, embed_projection: jax.Array) -> Gaussian:
-        return self._stats(self.obs_stats(nn.elu(self.obs_deter(deter) + embed_projection)))
+        return self._stats(self.obs_stats(elu(self.obs_deter(deter) + embed_projection)))
 
     def img_step(self, prev: Latent, action: jax.Array, noise: jax.Array) -> tuple[Latent, Gaussian]:
         """Prior step; noise (..., S) standard normal gives the reparameterised sample."""
