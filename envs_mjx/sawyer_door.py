@@ -163,7 +163,9 @@ class SawyerDoor(ResetFreeEnv):
     @property
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         margin = 0.02  # the hand lags its clipped target by up to about a centimetre
-        arc = np.asarray(jax.vmap(handle_position)(jnp.linspace(OPEN_ANGLE, 0.0, 61)))
+        # Evaluated eagerly: the bounds are read while collect_chunk is traced, where jnp ops would stage.
+        with jax.ensure_compile_time_eval():
+            arc = np.asarray(jax.vmap(handle_position)(jnp.linspace(OPEN_ANGLE, 0.0, 61)))
         low = np.concatenate([WORKSPACE_LOW - margin, [0.0], arc.min(0) - margin])
         high = np.concatenate([WORKSPACE_HIGH + margin, [1.0], arc.max(0) + margin])
         return low.astype(np.float32), high.astype(np.float32)

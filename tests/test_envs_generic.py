@@ -78,6 +78,10 @@ def test_reset_free_extension(env_name):
     low, high = env.observation_bounds
     assert low.shape == high.shape == (env.observation_size,) and np.all(low <= high)
     assert np.all((np.asarray(goal) >= low) & (np.asarray(goal) <= high))
+    # The goal search reads the bounds while collect_chunk is traced: they must not depend on tracing.
+    shifted = jax.jit(lambda x: x + jnp.asarray(env.observation_bounds[0]))
+    traced_low = shifted(jnp.zeros(env.observation_size))
+    np.testing.assert_array_equal(np.asarray(traced_low), low)
     assert env.eval_episode_length > 0 and env.hard_reset_every > 0
     assert all(0 <= d < env.observation_size for d in env.goal_dims)
     # The reset state is an initial state in the task's sense.
