@@ -308,7 +308,8 @@ def _full_key(key: str) -> str:
         return "run." + key
     if key == "alpha":
         raise ConfigError("alpha is ambiguous; set agent.alpha (imagination) or schedule.alpha (collection)")
-    shown = ", ".join([*SHORT_KEYS, "run.<key>", "agent.<key>", "planner.<key>", "schedule.<key>",
+    run_keys = [name for name in _field_types(RunConfig) if name not in SHORT_KEYS.values()]
+    shown = ", ".join([*SHORT_KEYS, *run_keys, "agent.<key>", "planner.<key>", "schedule.<key>",
                        *(f"{name}.<key>" for name, tp in _field_types(AgentConfig).items()
                          if dataclasses.is_dataclass(tp))])
     raise ConfigError(f"unknown key {key!r}; valid keys: {shown}")
