@@ -81,7 +81,7 @@ def bench_train(name: str, reps: int, peak: float) -> list[dict]:
     start = time.perf_counter()
     compiled = jax.jit(agent.train_step).lower(state, batch, pools, key).compile()
     compile_s = time.perf_counter() - start
-    compiled(state, batch, pools, key)  # warm-up
+    jax.block_until_ready(compiled(state, batch, pools, key))  # warm-up, finished before timing starts
     step_s = _time(compiled, state, batch, pools, key, reps=reps)
     flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
     rows = [
