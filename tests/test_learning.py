@@ -3,7 +3,9 @@
 PointUMaze with MoReFree at the `cpu` preset, seed 0: the goal-conditioned policy, evaluated episodically
 from the start state on the task's goal, must reach the goal (PEG's success: within 0.6 at any step) in
 at least half of the 10 evaluation episodes at some evaluation within 20,000 env steps. The recorded
-run (README "Results so far") first did so at 7,500 steps. About 12-15 minutes on the idle 2-core CPU.
+90-minute run (README "Results so far", pinned to one core) first did so at 7,500 steps with 100%; a run
+of this test on both cores gave 50% at 7,500 and 0% at 10,000-17,500, so at this budget the check is
+marginal (XLA's results depend on the thread layout, so the two runs differ). About 12 minutes idle.
 """
 
 from __future__ import annotations
@@ -27,5 +29,5 @@ def test_morefree_solves_point_umaze_at_cpu_preset(tmp_path):
     assert summary.env_steps == STEPS
     curve = [(r["step"], r["eval/success"]) for r in read_metrics(tmp_path / "metrics.jsonl")
              if "eval/success" in r]
-    assert len(curve) == STEPS // 2500
+    assert curve[-1][0] == STEPS  # evaluations every 2,500 steps from the first one after the prefill
     assert max(success for _, success in curve) >= REQUIRED_SUCCESS, curve
