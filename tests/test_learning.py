@@ -5,7 +5,8 @@ from the start state on the task's goal, must reach the goal (PEG's success: wit
 at least half of the 10 evaluation episodes at some evaluation within 20,000 env steps. The recorded
 90-minute run (README "Results so far", pinned to one core) first did so at 7,500 steps with 100%; a run
 of this test on both cores gave 50% at 7,500 and 0% at 10,000-17,500, so at this budget the check is
-marginal (XLA's results depend on the thread layout, so the two runs differ). About 12 minutes idle.
+marginal. The two runs differ, most likely because XLA sizes its thread pool from the CPU affinity
+(same seed, same numbers holds for the same core layout). About 12 minutes idle.
 """
 
 from __future__ import annotations
