@@ -10,11 +10,15 @@ runs/<env>/<agent>/seed<seed> unless run_dir=... is given. Bad input exits with 
 
 from __future__ import annotations
 
+import os
 import sys
 
-import envs_mjx
-from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
-from morefree_jax.config_run import ConfigError, resolve_config
+if "preset=paper" in sys.argv[1:]:  # before morefree_jax is imported (see morefree_jax.runtime)
+    os.environ.setdefault("MOREFREE_JAX_RUNTIME", "large")
+
+import envs_mjx  # noqa: E402
+from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError  # noqa: E402
+from morefree_jax.config_run import ConfigError, resolve_config  # noqa: E402
 
 
 def main(argv: list[str]) -> int:

@@ -9,7 +9,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from morefree_jax.actor_critic import actor_critic_update, imagine_with, init_actor_critic, make_actor_critic
+from morefree_jax import actor_critic
+from morefree_jax.actor_critic import (
+    actor_critic_update,
+    actor_loss,
+    imagine_with,
+    init_actor_critic,
+    make_actor_critic,
+    start_without_gradient,
+)
 from morefree_jax.config import ActorCriticConfig, OptimizerConfig
 from morefree_jax.networks import Latent
 
@@ -107,3 +115,49 @@ def test_trunc_normal_sample_gradient_finite_when_uniform_draw_hits_a_saturated_
     # The lowest draw lands ~5.42 std below loc (the float32 limit of erf_inv; both bounds are further).
     np.testing.assert_allclose(np.asarray(TruncNormal(loc, scale).sample(jax.random.PRNGKey(0))),
                                [0.5 - 0.542, -0.3 - 0.542], atol=2e-3)
+
+
+def test_start_without_gradient_keeps_values_and_drops_only_the_start_gradient():
+    key_x, key_w, key_c = jax.random.split(jax.random.PRNGKey(0), 3)
+    x = jax.random.normal(key_x, (5, 3, 4))
+    w = jax.random.normal(key_w, (4, 4))
+    cotangent = jax.random.normal(key_c, (5, 3))
+
+    def fn(x):  # per time step, returns a pytree
+        h = jnp.tanh(x @ w)
+        return {"sum": h.sum(-1), "h": h}
+
+    split = start_without_gradient(fn, x)
+    np.testing.assert_allclose(split["sum"], fn(x)["sum"], rtol=1e-6)
+    np.testing.assert_allclose(split["h"], fn(x)["h"], rtol=1e-6)
+
+    def loss(fn_of_x, x):
+        return jnp.sum(fn_of_x(x)["sum"] * cotangent)
+
+    grad_split = jax.grad(lambda x: loss(lambda x: start_without_gradient(fn, x), x))(x)
+    grad_plain = jax.grad(lambda x: loss(fn, x))(x)
+    np.testing.assert_allclose(grad_split[1:], grad_plain[1:], rtol=1e-5)
+    np.testing.assert_array_equal(grad_split[0], 0.0)
+    assert np.abs(grad_plain[0]).sum() > 0  # the plain gradient at step 0 is not trivially zero
+
+
+def test_actor_gradient_unchanged_by_splitting_off_the_start_state(monkeypatch):
+    """The start's reward and the first successor's value enter no actor-loss term: the split (in the
+    reward and in the lambda-return values) leaves the actor's gradient as it is without it."""
+    cfg = ActorCriticConfig(actor_layers=(32, 32), critic_layers=(32, 32), horizon=6)
+    ac = make_actor_critic(cfg, action_size=2, use_context=True)
+    actor, critic = init_actor_critic(ac, jax.random.PRNGKey(1), feat_size=3, context_size=2)
+    start, goals = starts_and_goals(jax.random.PRNGKey(2))
+
+    def reward_fn(trajectory):
+        distance = lambda f: jnp.linalg.norm(f[..., :2] - goals, axis=-1)  # noqa: E731
+        return -actor_critic.start_without_gradient(distance, trajectory.feat[:-1]), None
+
+    def actor_grad():
+        return jax.grad(lambda p: actor_loss(ac, p, critic.params, LinearPointMass(), None, reward_fn, start,
+                                             goals, jax.random.PRNGKey(3))[0])(actor.params)
+
+    split = actor_grad()
+    monkeypatch.setattr(actor_critic, "start_without_gradient", lambda fn, *inputs: fn(*inputs))
+    plain = actor_grad()
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7), split, plain)

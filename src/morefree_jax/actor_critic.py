@@ -87,8 +87,24 @@ def value(ac: ActorCritic, critic_params, feat: jax.Array, projection) -> jax.Ar
 
 
 # Trajectory -> (reward (H, N) of states 0..H-1, extras). The last state's reward never enters a
-# lambda-return, so reward functions skip it (saves 1/(H+1) of the reward networks' forward and backward).
+# lambda-return, so reward functions skip it (saves 1/(H+1) of the reward networks' forward and backward),
+# and they evaluate the start state through `start_without_gradient`.
 RewardFn = Callable[[Trajectory], tuple[jax.Array, object]]
+
+
+def start_without_gradient(fn: Callable, *inputs: jax.Array):
+    """fn(*inputs) on time-major inputs (T, N, ...), with no backward pass through time step 0.
+
+    fn maps each time step independently and returns a time-major array or pytree of them.
+
+    In the actor loss, the start state's reward and the first successor's value enter only target[0],
+    which the loss does not use (it starts at target[1]), so their gradient is zero; evaluated in one
+    batch with the other steps they would still be back-propagated. Splitting step 0 off under
+    stop_gradient gives the same values and gradients and saves 1/T of the network's backward pass.
+    """
+    first = fn(*(jax.lax.stop_gradient(x[:1]) for x in inputs))
+    rest = fn(*(x[1:] for x in inputs))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b], 0), first, rest)
 
 
 def imagine_with(ac: ActorCritic, actor_params, rssm: RSSM, rssm_params, start: Latent,
@@ -106,8 +122,9 @@ def returns_of(ac: ActorCritic, target_params, trajectory: Trajectory, reward: j
     reward (H, N) holds the rewards of states 0..H-1; values bootstrap from the target critic.
     """
     cfg = ac.config
-    next_value = value(ac, target_params, trajectory.feat[1:], _time_broadcast(
-        project(ac.critic, target_params, context)))
+    projection = _time_broadcast(project(ac.critic, target_params, context))
+    next_value = start_without_gradient(lambda feat: value(ac, target_params, feat, projection),
+                                        trajectory.feat[1:])
     discount = jnp.full(trajectory.feat.shape[:1], cfg.discount)  # constant: no discount head (PEG)
     target = lambda_return(reward, next_value, discount[:-1, None], cfg.lambda_)
     # Weights from the (H+1,) discounts, broadcast over N (a (H+1, N) cumprod is slow to constant-fold).

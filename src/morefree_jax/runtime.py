@@ -1,0 +1,88 @@
+"""Process settings for XLA's CPU runtime, applied when `morefree_jax` is imported (before JAX starts).
+
+MOREFREE_JAX_RUNTIME picks them (measured with experiments/bench_core.py on the 2-core dev machine):
+
+- `standard` (the default): `--xla_cpu_prefer_vector_width=512` on CPUs with AVX-512. XLA's loop fusions
+  (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256: the `cpu` train step
+  111 -> 78 ms, the ensemble forward at `paper` size 270 -> 300 GFLOP/s.
+- `large`, for paper-size learners on CPU (`make train PRESET=paper` and bench_core's paper row set it):
+  `standard` plus two changes that only pay off when one update moves gigabytes.
+  1. Page faults. XLA allocates an execution's temporaries (6.5 GB at `paper`) afresh on every call;
+     glibc serves that from a fresh `mmap` (always, for a thread off the main arena) and unmaps it on
+     `free`, so every update faults in and zeroes every page again: 1.6 million minor faults and ~8 s of
+     kernel time per exploration update. One malloc arena, no mmap'd chunks and no trimming keep freed
+     memory in the process: 0 faults, the exploration part 9.3 s -> 5.1 s. The process keeps its peak
+     heap (the next update reuses it). With small learners the single arena costs more than it saves
+     (threads contend for it: `cpu` train step 78 -> ~147 ms), hence not the default.
+  2. YNNPACK fusions off (`--xla_cpu_experimental_ynn_fusion_type=`): XLA's own dot emitter runs the
+     (33750, 400) x (400, 400) matmuls of the paper-size ensemble at ~350 GFLOP/s instead of ~170-250.
+- `default`: touch nothing.
+
+XLA flags take effect only if no JAX backend exists yet; flags already in XLA_FLAGS are left as they are.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+import warnings
+
+MODE_VARIABLE = "MOREFREE_JAX_RUNTIME"
+MODES = ("standard", "large", "default")
+YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
+WIDE_VECTORS = "--xla_cpu_prefer_vector_width=512"  # only on CPUs with AVX-512
+_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8  # glibc's mallopt parameter numbers
+
+
+def _keep_freed_memory() -> bool:
+    """glibc: one arena, no mmap'd chunks, never trim (-1 reads as SIZE_MAX) -> True if all applied."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+        return False
+    return all(mallopt(param, value) == 1 for param, value in
+               ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, -1)))
+
+
+def _has_avx512() -> bool:
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return " avx512f" in cpuinfo.read()
+    except OSError:
+        return False
+
+
+def _add_xla_flags(wanted: list[str]) -> list[str]:
+    """Adds the wanted flags the user did not set to XLA_FLAGS while no JAX backend exists yet."""
+    from jax._src import xla_bridge  # private: the only way to know whether flags can still apply
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    added = [flag for flag in wanted if flag.split("=")[0] not in flags]
+    if added and xla_bridge.backends_are_initialized():
+        warnings.warn(f"morefree_jax was imported after JAX started, too late for XLA_FLAGS {added}: "
+                      "train steps on CPU run slower; import morefree_jax first", stacklevel=3)
+        return []
+    os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+    return added
+
+
+def runtime_mode() -> str:
+    mode = os.environ.get(MODE_VARIABLE, "standard") or "standard"
+    if mode not in MODES:
+        raise ValueError(f"{MODE_VARIABLE}={mode!r} is not one of {', '.join(MODES)}")
+    return mode
+
+
+def tune_cpu_runtime(mode: str | None = None) -> dict:
+    """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied."""
+    mode = mode or runtime_mode()
+    if mode == "default":
+        return {"mode": mode, "keep_freed_memory": False, "xla_flags": []}
+    wanted = ([YNN_OFF] if mode == "large" else []) + ([WIDE_VECTORS] if _has_avx512() else [])
+    keep = _keep_freed_memory() if mode == "large" else False
+    return {"mode": mode, "keep_freed_memory": keep, "xla_flags": _add_xla_flags(wanted)}

@@ -1,0 +1,80 @@
+"""Process settings of morefree_jax.runtime, each checked in a fresh interpreter (they act at start-up)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from morefree_jax import runtime
+
+# Minor page faults of the second of two malloc / touch / free rounds of 400 MB in a worker thread: what
+# XLA does with an execution's temporaries (the thread is off glibc's main arena).
+FAULTS = """
+import ctypes, json, resource, threading
+import morefree_jax
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = [ctypes.c_void_p]
+size = 400 * 2**20
+def use_temporaries():
+    block = libc.malloc(size)
+    ctypes.memset(block, 1, size)
+    libc.free(block)
+def in_worker():
+    worker = threading.Thread(target=use_temporaries)
+    worker.start()
+    worker.join()
+in_worker()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+in_worker()
+print(json.dumps({"faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before,
+                  "settings": morefree_jax.RUNTIME_SETTINGS}))
+"""
+
+
+def _python(code: str, mode: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, runtime.MODE_VARIABLE: mode}
+    env.pop("XLA_FLAGS", None)
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+
+
+def _last_json(done: subprocess.CompletedProcess) -> dict:
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_large_mode_reuses_freed_memory_instead_of_faulting_it_in_again():
+    large, default = _last_json(_python(FAULTS, "large")), _last_json(_python(FAULTS, "default"))
+    assert large["settings"]["keep_freed_memory"] and not default["settings"]["keep_freed_memory"]
+    # ~100k 4 KB pages of temporaries: faulted in again on every call unless freed memory is kept.
+    assert default["faults"] > 50_000
+    assert large["faults"] < 5_000
+
+
+def test_modes_set_their_xla_flags():
+    code = "import json, os, morefree_jax; print(json.dumps(os.environ.get('XLA_FLAGS', '')))"
+    flags = {mode: json.loads(_python(code, mode).stdout.strip().splitlines()[-1])
+             for mode in ("large", "standard", "default")}
+    assert runtime.YNN_OFF in flags["large"] and runtime.YNN_OFF not in flags["standard"]
+    assert flags["default"] == ""
+
+
+def test_flags_are_not_touched_once_jax_has_started():
+    code = ("import os, warnings, jax; jax.numpy.ones(1).block_until_ready()\n"
+            "with warnings.catch_warnings(record=True) as caught:\n"
+            "    warnings.simplefilter('always')\n"
+            "    import morefree_jax\n"
+            "print(os.environ.get('XLA_FLAGS', ''), '|', [str(w.message) for w in caught])")
+    out = _python(code, "large").stdout
+    flags, _, warned = out.rpartition("|")
+    assert runtime.YNN_OFF not in flags
+    assert "import morefree_jax first" in warned
+
+
+def test_unknown_mode_is_a_clear_error(monkeypatch):
+    monkeypatch.setenv(runtime.MODE_VARIABLE, "fastest")
+    with pytest.raises(ValueError, match="standard, large, default"):
+        runtime.runtime_mode()
