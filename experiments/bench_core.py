@@ -155,7 +155,9 @@ def _paper_in_large_runtime(reps: int) -> list[dict]:
     env = {**os.environ, runtime.MODE_VARIABLE: "large"}
     command = [sys.executable, "-m", "experiments.bench_core", "--presets", "paper", "--reps", str(reps),
                "--json"]
-    done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"the paper benchmark's child process failed: {done.stderr.strip()[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 

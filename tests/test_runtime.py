@@ -78,3 +78,8 @@ def test_unknown_mode_is_a_clear_error(monkeypatch):
     monkeypatch.setenv(runtime.MODE_VARIABLE, "fastest")
     with pytest.raises(ValueError, match="standard, large, default"):
         runtime.runtime_mode()
+
+
+def test_unknown_mode_argument_is_a_clear_error():
+    with pytest.raises(ValueError, match="standard, large, default"):
+        runtime.tune_cpu_runtime("fast")

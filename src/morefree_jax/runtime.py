@@ -72,7 +72,10 @@ def _add_xla_flags(wanted: list[str]) -> list[str]:
 
 
 def runtime_mode() -> str:
-    mode = os.environ.get(MODE_VARIABLE, "standard") or "standard"
+    return _checked(os.environ.get(MODE_VARIABLE, "standard") or "standard")
+
+
+def _checked(mode: str) -> str:
     if mode not in MODES:
         raise ValueError(f"{MODE_VARIABLE}={mode!r} is not one of {', '.join(MODES)}")
     return mode
@@ -80,7 +83,7 @@ def runtime_mode() -> str:
 
 def tune_cpu_runtime(mode: str | None = None) -> dict:
     """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied."""
-    mode = mode or runtime_mode()
+    mode = _checked(mode) if mode else runtime_mode()
     if mode == "default":
         return {"mode": mode, "keep_freed_memory": False, "xla_flags": []}
     wanted = ([YNN_OFF] if mode == "large" else []) + ([WIDE_VECTORS] if _has_avx512() else [])
