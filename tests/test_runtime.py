@@ -56,8 +56,7 @@ def test_large_mode_reuses_freed_memory_instead_of_faulting_it_in_again():
 
 def test_modes_set_their_xla_flags():
     code = "import json, os, morefree_jax; print(json.dumps(os.environ.get('XLA_FLAGS', '')))"
-    flags = {mode: json.loads(_python(code, mode).stdout.strip().splitlines()[-1])
-             for mode in ("large", "standard", "default")}
+    flags = {mode: _last_json(_python(code, mode)) for mode in ("large", "standard", "default")}
     assert runtime.YNN_OFF in flags["large"] and runtime.YNN_OFF not in flags["standard"]
     assert flags["default"] == ""
 
