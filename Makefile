@@ -9,6 +9,8 @@ TEST_WORKERS ?= 2
 STEPS ?= 1000000
 ARGS ?=
 RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
+# jemalloc preloaded where installed (libjemalloc2): ~15% faster learner steps (see morefree_jax/runtime.py).
+ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocator_env()" 2>/dev/null)
 
 .PHONY: install test test-slow lint bench clean train evaluate
 
@@ -27,15 +29,15 @@ lint:
 	$(VENV)/bin/ruff check .
 
 bench:
-	$(PY) -m experiments.bench $(BENCH_ARGS)
+	env $(ALLOC_ENV) $(PY) -m experiments.bench $(BENCH_ARGS)
 
 # Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
 train:
-	PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) seed=$(SEED) \
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) seed=$(SEED) \
 		steps=$(STEPS) $(ARGS)
 
 evaluate:
-	PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)
 
 clean:
 	rm -rf bench/ .pytest_cache build *.egg-info src/*.egg-info

@@ -150,9 +150,10 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
 
 
 def _paper_in_large_runtime(reps: int) -> list[dict]:
-    """The paper rows from a child process in MOREFREE_JAX_RUNTIME=large (what `make train PRESET=paper`
-    uses; the allocator and XLA flags are fixed when a process starts, see morefree_jax.runtime)."""
-    env = {**os.environ, runtime.MODE_VARIABLE: "large"}
+    """The paper rows from a child process in MOREFREE_JAX_RUNTIME=large on jemalloc where installed (what
+    `make train PRESET=paper` uses; the allocator and XLA flags are fixed when a process starts, see
+    morefree_jax.runtime)."""
+    env = {**os.environ, runtime.MODE_VARIABLE: "large", **runtime.allocator_env()}
     command = [sys.executable, "-m", "experiments.bench_core", "--presets", "paper", "--reps", str(reps),
                "--json"]
     done = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -173,7 +174,9 @@ def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: 
     else:
         rows = []
     peak = matmul_peak()
-    rows.append(_row("matmul_peak_2048", peak / 1e9, "GFLOP/s", f"f32 2048^3 under jit, runtime {mode}"))
+    allocator = "jemalloc" if runtime.jemalloc_loaded() else "glibc"
+    rows.append(_row("matmul_peak_2048", peak / 1e9, "GFLOP/s",
+                     f"f32 2048^3 under jit, runtime {mode}, allocator {allocator}"))
     for name in presets:
         rows += bench_act(name)
         rows += bench_train(name, reps, peak)

@@ -34,9 +34,11 @@ print(json.dumps({"faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt -
 """
 
 
-def _python(code: str, mode: str) -> subprocess.CompletedProcess:
+def _python(code: str, mode: str, extra_env: dict | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, runtime.MODE_VARIABLE: mode}
     env.pop("XLA_FLAGS", None)
+    env.pop("LD_PRELOAD", None)  # glibc's malloc unless a test asks for jemalloc
+    env.update(extra_env or {})
     return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
 
 
@@ -82,3 +84,23 @@ def test_unknown_mode_is_a_clear_error(monkeypatch):
 def test_unknown_mode_argument_is_a_clear_error():
     with pytest.raises(ValueError, match="standard, large, default"):
         runtime.tune_cpu_runtime("fast")
+
+
+def test_allocator_env_preloads_jemalloc_once_and_only_where_wanted(monkeypatch):
+    monkeypatch.setattr(runtime, "find_jemalloc", lambda: "libjemalloc.so.2")
+    env = runtime.allocator_env({"LD_PRELOAD": "libother.so"})
+    assert env == {"LD_PRELOAD": "libother.so libjemalloc.so.2", "MALLOC_CONF": runtime.JEMALLOC_CONF}
+    assert runtime.allocator_env({"MALLOC_CONF": "narenas:2"})["MALLOC_CONF"] == "narenas:2"  # user's wins
+    assert runtime.allocator_env({"LD_PRELOAD": "/opt/libjemalloc.so"}) == {}  # already preloaded
+    assert runtime.allocator_env({runtime.JEMALLOC_VARIABLE: "0"}) == {}  # opted out
+    monkeypatch.setattr(runtime, "find_jemalloc", lambda: None)
+    assert runtime.allocator_env({}) == {}  # not installed: glibc, nothing to preload
+
+
+@pytest.mark.skipif(runtime.find_jemalloc() is None, reason="libjemalloc2 is not installed on this machine")
+def test_a_process_started_with_allocator_env_runs_on_jemalloc_and_leaves_glibc_alone():
+    code = "import json, morefree_jax; print(json.dumps(morefree_jax.RUNTIME_SETTINGS))"
+    on_jemalloc = _last_json(_python(code, "large", runtime.allocator_env({})))
+    assert on_jemalloc["allocator"] == "jemalloc" and not on_jemalloc["keep_freed_memory"]
+    on_glibc = _last_json(_python(code, "large"))
+    assert on_glibc["allocator"] == "glibc" and on_glibc["keep_freed_memory"]

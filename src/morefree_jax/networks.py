@@ -44,13 +44,16 @@ class Gaussian(NamedTuple):
 
 @jax.custom_jvp
 def elu(x: jax.Array) -> jax.Array:
-    """ELU (alpha 1), the activation of every network here; same values as `jax.nn.elu`.
+    """ELU (alpha 1), the activation of every network here: x where x > 0, else exp(x) - 1.
 
+    exp(x) - 1 is what TensorFlow's Elu kernel (the original agent's) computes; `jax.nn.elu` uses expm1,
+    which differs by at most ~1e-7 absolute and costs twice as much on CPU (XLA evaluates expm1 with
+    both a polynomial and exp): the ELU of a (10, 33750, 400) ensemble activation 39 -> 17 ms.
     Its derivative is written with the output (1 where x > 0, else y + 1 = exp(x)), so the backward pass
     reuses y instead of evaluating exp(x) again: ELU passes over (N, 400) activations are a large share of
     a train step on CPU.
     """
-    return jnp.where(x > 0, x, jnp.expm1(jnp.minimum(x, 0.0)))
+    return jnp.where(x > 0, x, jnp.exp(jnp.minimum(x, 0.0)) - 1.0)
 
 
 @elu.defjvp
