@@ -64,13 +64,18 @@ def find_jemalloc() -> str | None:
     return ctypes.util.find_library("jemalloc") if sys.platform.startswith("linux") else None
 
 
-def jemalloc_loaded() -> bool:
-    """Whether this process runs on jemalloc (preloaded: it replaces malloc for every library)."""
+def _file_contains(path: str, text: str) -> bool:
+    """Whether a (/proc) file holds `text`; False where the file cannot be read (not Linux)."""
     try:
-        with open("/proc/self/maps") as maps:
-            return "libjemalloc" in maps.read()
+        with open(path) as file:
+            return text in file.read()
     except OSError:
         return False
+
+
+def jemalloc_loaded() -> bool:
+    """Whether this process runs on jemalloc (preloaded: it replaces malloc for every library)."""
+    return _file_contains("/proc/self/maps", "libjemalloc")
 
 
 def allocator_env(environ: dict | None = None) -> dict[str, str]:
@@ -86,11 +91,7 @@ def allocator_env(environ: dict | None = None) -> dict[str, str]:
 
 
 def _has_avx512() -> bool:
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            return " avx512f" in cpuinfo.read()
-    except OSError:
-        return False
+    return _file_contains("/proc/cpuinfo", " avx512f")
 
 
 def _add_xla_flags(wanted: list[str]) -> list[str]:
