@@ -132,8 +132,13 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
     jax.block_until_ready(act(state, latent, prev, obs, goal, key, MODE_GOAL))
     call_s = _time(act, state, latent, prev, obs, goal, key, MODE_GOAL, reps=200)
     call_row = _row(f"{name}/act_call", call_s * 1e3, "ms", "one jitted call on acting_state, incl. dispatch")
+    context = jax.jit(agent.goal_context)(state, goal)
+    jax.block_until_ready(act(state, latent, prev, obs, context, key, MODE_GOAL))
+    context_s = _time(act, state, latent, prev, obs, context, key, MODE_GOAL, reps=200)
+    context_row = _row(f"{name}/act_call_goal_context", context_s * 1e3, "ms",
+                       "the same call given agent.goal_context(state, goal) instead of the goal")
     if steps == 0:
-        return [call_row]
+        return [call_row, context_row]
 
     @jax.jit
     def rollout(state, key):
@@ -146,7 +151,8 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
 
     jax.block_until_ready(rollout(state, key))
     scan_s = _time(rollout, state, key, reps=3) / steps
-    return [call_row, _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
+    return [call_row, context_row,
+            _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
 
 
 def _paper_in_large_runtime(reps: int) -> list[dict]:

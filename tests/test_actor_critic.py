@@ -96,16 +96,13 @@ def test_trunc_normal_entropy_and_reparameterised_sample():
     assert float(samples.max()) < 1.0 and float(samples.min()) > -1.0
 
 
-def test_trunc_normal_sample_gradient_finite_when_uniform_draw_hits_a_saturated_bound(monkeypatch):
+def test_trunc_normal_sample_gradient_finite_when_uniform_draw_hits_a_saturated_bound():
     """loc 0.5, scale 0.1: the lower bound is 15 std away, erf rounds it to -1 in float32; a uniform draw
     of exactly 0 used to give erf_inv(-1) = -inf and a NaN actor gradient (point_umaze run at ~6500 steps)."""
     from morefree_jax.networks import TruncNormal
 
-    lowest_draw = lambda key, shape, minval, maxval: jnp.broadcast_to(minval, shape)  # noqa: E731
-    monkeypatch.setattr(jax.random, "uniform", lowest_draw)
-
     def sample_sum(loc, scale):
-        return jnp.sum(TruncNormal(loc, scale).sample(jax.random.PRNGKey(0)))
+        return jnp.sum(TruncNormal(loc, scale).sample_from_uniform(jnp.zeros_like(loc)))  # the lowest draw
 
     loc, scale = jnp.array([0.5, -0.3]), jnp.array([0.1, 0.1])
     value = sample_sum(loc, scale)
@@ -113,8 +110,21 @@ def test_trunc_normal_sample_gradient_finite_when_uniform_draw_hits_a_saturated_
     assert np.isfinite(float(value))
     assert np.all(np.isfinite(np.asarray(grads[0]))) and np.all(np.isfinite(np.asarray(grads[1])))
     # The lowest draw lands ~5.42 std below loc (the float32 limit of erf_inv; both bounds are further).
-    np.testing.assert_allclose(np.asarray(TruncNormal(loc, scale).sample(jax.random.PRNGKey(0))),
+    np.testing.assert_allclose(np.asarray(TruncNormal(loc, scale).sample_from_uniform(jnp.zeros(2))),
                                [0.5 - 0.542, -0.3 - 0.542], atol=2e-3)
+
+
+def test_trunc_normal_sample_is_the_sample_of_its_uniform_draw():
+    from morefree_jax.networks import TruncNormal
+
+    actor = TruncNormal(jnp.array([0.5, -0.3, 0.0]), jnp.array([0.1, 0.4, 2.0]))
+    key = jax.random.PRNGKey(3)
+    unit = jax.random.uniform(key, (3,))
+    np.testing.assert_array_equal(np.asarray(jax.jit(actor.sample)(key)),
+                                  np.asarray(jax.jit(actor.sample_from_uniform)(unit)))
+    # Monotone in the draw: the inverse CDF.
+    low, high = actor.sample_from_uniform(jnp.full(3, 0.2)), actor.sample_from_uniform(jnp.full(3, 0.8))
+    assert np.all(np.asarray(low) < np.asarray(high))
 
 
 def test_start_without_gradient_keeps_values_and_drops_only_the_start_gradient():

@@ -6,7 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from morefree_jax.agent import MODE_DETERMINISTIC, MODE_EXPLORE, MODE_GOAL, EnvSpec, acting_state, make_agent
+from morefree_jax.agent import (
+    MODE_DETERMINISTIC,
+    MODE_EXPLORE,
+    MODE_GOAL,
+    EnvSpec,
+    _acting_noise,
+    acting_state,
+    make_agent,
+)
 from morefree_jax.config import preset
 from morefree_jax.imagination import GoalPools
 from tests.core_helpers import fixed_batch
@@ -105,6 +113,47 @@ def test_act_single_env_and_vmapped_modes():
         slim_out = act(slim, latent, prev, obs, goal, key, jnp.int32(mode))
         for a, b in zip(jax.tree.leaves(full_out), jax.tree.leaves(slim_out), strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_act_on_a_goal_context_matches_act_on_the_goal():
+    agent, _, act, batch, _ = setup()
+    state = acting_state(agent.init(jax.random.PRNGKey(5)))
+    obs_size = batch.obs.shape[-1]
+    obs, goal = jnp.full(obs_size, 0.1), jnp.full(obs_size, 0.7)
+    latent, prev, key = agent.initial_latent(()), jnp.full(2, 0.3), jax.random.PRNGKey(1)
+    context = jax.jit(agent.goal_context)(state, goal)
+    for mode in [MODE_GOAL, MODE_GOAL | MODE_DETERMINISTIC, MODE_EXPLORE]:
+        on_goal = act(state, latent, prev, obs, goal, key, jnp.int32(mode))
+        on_context = act(state, latent, prev, obs, context, key, jnp.int32(mode))
+        for a, b in zip(jax.tree.leaves(on_goal), jax.tree.leaves(on_context), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+    # A different goal's context gives a different action: the context is what the policy reads.
+    other = jax.jit(agent.goal_context)(state, jnp.full(obs_size, -0.7))
+    mode = jnp.int32(MODE_GOAL | MODE_DETERMINISTIC)
+    assert float(jnp.max(jnp.abs(act(state, latent, prev, obs, other, key, mode)[0]
+                                 - act(state, latent, prev, obs, context, key, mode)[0]))) > 1e-4
+    # Batched goals give batched contexts, usable under vmap.
+    contexts = agent.goal_context(state, jnp.stack([goal, goal]))
+    batched = jax.vmap(agent.act, in_axes=(None, 0, 0, 0, 0, 0, None))
+    actions, _ = batched(state, agent.initial_latent((2,)), jnp.stack([prev, prev]), jnp.stack([obs, obs]),
+                         contexts, jnp.stack([key, key]), MODE_GOAL)
+    np.testing.assert_allclose(np.asarray(actions[0]), np.asarray(actions[1]), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(actions[0]), np.asarray(act(state, latent, prev, obs, goal, key,
+                                                                      jnp.int32(MODE_GOAL))[0]), atol=1e-5)
+
+
+def test_acting_noise_is_standard_normal_and_uniform():
+    normal, unit = jax.jit(_acting_noise, static_argnums=(1, 2, 3))(jax.random.PRNGKey(0), (4000,), 5, 3)
+    assert normal.shape == (4000, 5) and unit.shape == (4000, 3)
+    normal, unit = np.asarray(normal).ravel(), np.asarray(unit).ravel()
+    assert np.all(np.isfinite(normal)) and np.all((unit >= 0) & (unit < 1))
+    n = normal.size
+    assert abs(normal.mean()) < 4 / np.sqrt(n) and abs(normal.std() - 1) < 4 / np.sqrt(2 * n)
+    # Kolmogorov-Smirnov distance to the normal CDF and to U[0, 1): 1.63 / sqrt(n) is the 1% critical value.
+    cdf = np.sort(np.asarray(jax.scipy.stats.norm.cdf(normal)))
+    assert np.max(np.abs(cdf - (np.arange(n) + 0.5) / n)) < 1.63 / np.sqrt(n)
+    ranks = np.sort(unit)
+    assert np.max(np.abs(ranks - (np.arange(unit.size) + 0.5) / unit.size)) < 1.63 / np.sqrt(unit.size)
 
 
 def test_planner_building_blocks_shapes():

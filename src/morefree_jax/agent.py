@@ -4,6 +4,8 @@
     state = agent.init(key)
     latent = agent.initial_latent(())                       # zeros = is_first
     action, latent = agent.act(state, latent, prev_action, obs, goal, key, MODE_GOAL)
+    context = agent.goal_context(state, goal)               # once per goal: the same act, less work per step
+    action, latent = agent.act(state, latent, prev_action, obs, context, key, MODE_GOAL)
     state, metrics = jax.jit(agent.train_step)(state, batch, GoalPools(eval_goals, initial_states), key)
 
 Nothing is jitted here; callers jit (donate the state in train_step). Everything works unbatched and under
@@ -47,6 +49,8 @@ from morefree_jax.imagination import (
     sample_imagination_goals,
 )
 from morefree_jax.networks import (
+    ERF_INV_LIMIT,
+    SQRT2,
     Latent,
     NetState,
     TruncNormal,
@@ -72,6 +76,14 @@ class EnvSpec(NamedTuple):
         return cls(int(env.observation_size), int(env.action_size), tuple(int(d) for d in env.goal_dims))
 
 
+class GoalContext(NamedTuple):
+    """A goal prepared for acting (`agent.goal_context`): the goal-conditioned actor's first-layer
+    projection of the goal's encoding. It is constant while the goal is, so an acting loop that computes
+    it once per goal saves `act` the goal's encoder pass and one hidden-size matrix-vector product."""
+
+    projection: jax.Array  # (..., actor hidden)
+
+
 @flax.struct.dataclass
 class AgentState:
     wm: NetState
@@ -85,17 +97,31 @@ class AgentState:
 
 
 def acting_state(state: AgentState) -> AgentState:
-    """The part of `state` that `act` reads: world-model and actor parameters; every other field is None.
+    """The part of `state` that `act` reads: the encoder, RSSM and actor parameters; every other field is
+    None, as are the decoder and embed head (`goal_distance` needs the full state).
 
     `act` gives the same result on it. A jitted call flattens its arguments on every dispatch, so a
-    Python-side acting loop should pass this (58 leaves at `cpu`) rather than the whole state with its
+    Python-side acting loop should pass this (42 leaves at `cpu`) rather than the whole state with its
     optimiser moments (326 leaves): measured 0.15 ms instead of 0.33 ms per call (experiments/bench_core.py).
     """
     def params_only(net: NetState) -> NetState:
         return NetState(net.params, None)
 
-    return AgentState(params_only(state.wm), params_only(state.gc_actor), None, None, None,
+    acting_wm = NetState({part: state.wm.params[part] for part in ("encoder", "rssm")}, None)
+    return AgentState(acting_wm, params_only(state.gc_actor), None, None, None,
                       params_only(state.explore_actor), None, state.updates)
+
+
+def _acting_noise(key: jax.Array, batch_shape: tuple[int, ...], stoch: int, action_size: int):
+    """One uniform draw for a whole `act` step -> (standard-normal latent noise, U[0, 1) for the action).
+
+    The normal noise is the inverse CDF of the uniform, as in jax.random.normal. XLA:CPU runs each
+    threefry call as its own rolled loop; one draw instead of split + two draws keeps the per-call graph
+    short (see `act`).
+    """
+    unit = jax.random.uniform(key, (*batch_shape, stoch + action_size))
+    symmetric = jnp.clip(2.0 * unit[..., :stoch] - 1.0, -ERF_INV_LIMIT, ERF_INV_LIMIT)
+    return SQRT2 * jax.scipy.special.erfinv(symmetric), unit[..., stoch:]
 
 
 class Agent(NamedTuple):
@@ -103,6 +129,7 @@ class Agent(NamedTuple):
 
     init: Callable
     initial_latent: Callable
+    goal_context: Callable
     act: Callable
     train_step: Callable
     goal_distance: Callable
@@ -137,21 +164,29 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
         """The zero latent; filtering an observation from it equals an is_first step."""
         return zero_latent(config.wm.deter, config.wm.stoch, batch_shape)
 
+    def goal_context(state: AgentState, goal) -> GoalContext:
+        """Prepares goal observations (..., O) for `act` (see GoalContext)."""
+        return GoalContext(project(gc.actor, state.gc_actor.params, encode(wm, state.wm.params, goal)))
+
     def act(state: AgentState, latent: Latent, prev_action, obs, goal, key, mode):
         """Filters `obs` into the latent one step, then acts -> (action (A,), latent).
 
-        latent (...), prev_action (..., A), obs/goal (..., O); mode: MODE_GOAL or MODE_EXPLORE, optionally
+        latent (...), prev_action (..., A), obs (..., O); goal: a goal observation (..., O) or its
+        `goal_context` (same actions, less work per call); mode: MODE_GOAL or MODE_EXPLORE, optionally
         | MODE_DETERMINISTIC; a Python int selects statically, an int array selects under lax.cond.
+
+        A jitted single call on CPU costs more in XLA's runtime than in arithmetic: independent branches
+        (goal encoding, the random draws) are handed to other threads. Hence one random draw per call and
+        the optional goal context.
         """
-        key_obs, key_act = jax.random.split(key)
         params = state.wm.params
-        noise = jax.random.normal(key_obs, latent.stoch.shape)
+        noise, action_unit = _acting_noise(key, latent.stoch.shape[:-1], config.wm.stoch, spec.action_size)
         latent, _, _ = wm.rssm.apply(params["rssm"], latent, prev_action, encode(wm, params, obs), noise)
         feat = feature(latent)
 
         def goal_policy():
-            goal_projection_ = project(gc.actor, state.gc_actor.params, encode(wm, params, goal))
-            return tuple(policy(gc, state.gc_actor.params, feat, goal_projection_))
+            context = goal if isinstance(goal, GoalContext) else goal_context(state, goal)
+            return tuple(policy(gc, state.gc_actor.params, feat, context.projection))
 
         def explore_policy():
             return tuple(policy(explore_ac, state.explore_actor.params, feat, None))
@@ -163,7 +198,7 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
             loc, scale = jax.lax.cond(mode & MODE_EXPLORE != 0, explore_policy, goal_policy)
             deterministic = mode & MODE_DETERMINISTIC != 0
         actor = TruncNormal(loc, scale)
-        action = jnp.where(deterministic, actor.mode(), actor.sample(key_act))
+        action = jnp.where(deterministic, actor.mode(), actor.sample_from_uniform(action_unit))
         return action, latent
 
     def goal_distance(state: AgentState, latent: Latent, goal_obs, obs=None) -> jax.Array:
@@ -285,5 +320,5 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
     modules = {"world_model": wm, "gc": gc, "explore_ac": explore_ac, "distance": dist, "ensemble": ens,
                "world_model_part": world_model_part, "goal_conditioned_part": goal_conditioned_part,
                "explore_part": explore_part}
-    return Agent(init, initial_latent, act, train_step, goal_distance, imagine_to_goals, exploration_value,
-                 config, spec, modules)
+    return Agent(init, initial_latent, goal_context, act, train_step, goal_distance, imagine_to_goals,
+                 exploration_value, config, spec, modules)

@@ -41,6 +41,7 @@ def evaluate_policy(env, agent, agent_state, key: jax.Array, num_episodes: int,
     key_reset, key_goal, key_act = jax.random.split(key, 3)
     env_states = jax.vmap(env.reset)(jax.random.split(key_reset, num_episodes))
     goals = jax.vmap(env.eval_goals)(jax.random.split(key_goal, num_episodes))
+    contexts = agent.goal_context(agent_state, goals)  # the goals are fixed for the episode: encode them once
     act = jax.vmap(agent.act, in_axes=(None, 0, 0, 0, 0, 0, None))
     mode = MODE_GOAL | MODE_DETERMINISTIC
     carry = (env_states, agent.initial_latent((num_episodes,)), jnp.zeros((num_episodes, env.action_size)),
@@ -48,7 +49,7 @@ def evaluate_policy(env, agent, agent_state, key: jax.Array, num_episodes: int,
 
     def step(carry, key_step):
         env_states, latent, prev_action, reached, closest = carry
-        action, latent = act(agent_state, latent, prev_action, env_states.obs, goals,
+        action, latent = act(agent_state, latent, prev_action, env_states.obs, contexts,
                              jax.random.split(key_step, num_episodes), mode)
         env_states = jax.vmap(env.step)(env_states, action)
         reached = reached | jax.vmap(env.success)(env_states.obs, goals)

@@ -214,6 +214,10 @@ class TruncNormal(NamedTuple):
 
     def sample(self, key: jax.Array) -> jax.Array:
         """Reparameterised inverse-CDF sample, clipped to [-1+1e-6, 1-1e-6] with a straight-through grad."""
+        return self.sample_from_uniform(jax.random.uniform(key, self.loc.shape))
+
+    def sample_from_uniform(self, unit: jax.Array) -> jax.Array:
+        """The sample for `unit` ~ U[0, 1) of the batch shape (so one draw can serve several samplers)."""
         alpha, beta = self._bounds()
         # Inverse CDF by hand instead of jax.random.truncated_normal: when a bound is beyond ~5.5 std,
         # erf(bound) rounds to +-1 in float32, and a uniform draw of exactly 0 then gives u = -1,
@@ -222,7 +226,7 @@ class TruncNormal(NamedTuple):
         # Keeping u strictly inside (-1, 1) keeps erf_inv and its derivative finite.
         a = jax.scipy.special.erf(alpha / SQRT2)
         b = jax.scipy.special.erf(beta / SQRT2)
-        u = jax.random.uniform(key, self.loc.shape, minval=a, maxval=b)
+        u = jnp.maximum(a, unit * (b - a) + a)  # what jax.random.uniform(minval=a, maxval=b) computes
         u = jnp.clip(u, -ERF_INV_LIMIT, ERF_INV_LIMIT)
         z = jnp.clip(SQRT2 * jax.scipy.special.erfinv(u), alpha, beta)
         x = self.loc + self.scale * z
