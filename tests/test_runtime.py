@@ -63,19 +63,6 @@ def test_modes_set_their_xla_flags():
     assert flags["default"] == ""
 
 
-def test_standard_and_large_run_cpu_computations_on_the_calling_thread():
-    code = ("import json, morefree_jax, jax\n"
-            "from jax._src import xla_bridge\n"
-            "jax.numpy.ones(1).block_until_ready()\n"
-            "print(json.dumps([morefree_jax.RUNTIME_SETTINGS['inline_dispatch'],\n"
-            "                  jax.config.values['jax_cpu_enable_async_dispatch']]))")
-    for mode, inline in [("standard", True), ("large", True), ("default", False)]:
-        assert _last_json(_python(code, mode)) == [inline, not inline], mode
-    # Too late once JAX has started: the setting is left as it is.
-    late = "import json, jax; jax.numpy.ones(1).block_until_ready()\n" + code
-    assert _last_json(_python(late, "standard")) == [False, True]
-
-
 def test_flags_are_not_touched_once_jax_has_started():
     code = ("import os, warnings, jax; jax.numpy.ones(1).block_until_ready()\n"
             "with warnings.catch_warnings(record=True) as caught:\n"

@@ -16,16 +16,9 @@ MOREFREE_JAX_RUNTIME picks them (measured with experiments/bench_core.py on the 
      (threads contend for it: `cpu` train step 78 -> ~147 ms), hence not the default.
   2. YNNPACK fusions off (`--xla_cpu_experimental_ynn_fusion_type=`): XLA's own dot emitter runs the
      (33750, 400) x (400, 400) matmuls of the paper-size ensemble at ~350 GFLOP/s instead of ~170-250.
-- `standard` and `large` also run CPU computations on the calling thread (`jax_cpu_enable_async_dispatch`
-  off). With JAX's async dispatch a jitted call hands the computation to a dispatch thread and the caller
-  waits for it: two thread hand-offs, which cost more than the arithmetic of a small call. A single-env
-  `act` (medians, one process per figure): `paper` 0.25-0.27 -> 0.20-0.22 ms, with a goal context
-  0.17-0.19 -> 0.12-0.13 ms; `cpu` 0.19 -> 0.08-0.12 ms. The train step is unchanged (the train loop waits
-  on each of its calls anyway).
 - `default`: touch nothing.
 
-XLA flags and the dispatch setting take effect only if no JAX backend exists yet; flags already in
-XLA_FLAGS are left as they are.
+XLA flags take effect only if no JAX backend exists yet; flags already in XLA_FLAGS are left as they are.
 
 jemalloc, where installed (Debian/Ubuntu `libjemalloc2`), does better than any glibc setting: per-thread
 caches instead of one contended arena, and with purging off (`JEMALLOC_CONF`) no page is faulted in twice.
@@ -115,17 +108,6 @@ def _add_xla_flags(wanted: list[str]) -> list[str]:
     return added
 
 
-def _dispatch_inline() -> bool:
-    """Turns JAX's CPU async dispatch off while no backend exists yet (see the module docstring)."""
-    import jax
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized():
-        return False
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
-    return True
-
-
 def runtime_mode() -> str:
     return _checked(os.environ.get(MODE_VARIABLE, "standard") or "standard")
 
@@ -141,12 +123,11 @@ def tune_cpu_runtime(mode: str | None = None) -> dict:
     mode = _checked(mode) if mode else runtime_mode()
     allocator = "jemalloc" if jemalloc_loaded() else "glibc"
     if mode == "default":
-        return {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": [],
-                "inline_dispatch": False}
+        return {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
     wanted = ([YNN_OFF] if mode == "large" else []) + ([WIDE_VECTORS] if _has_avx512() else [])
     keep = _keep_freed_memory() if mode == "large" and allocator == "glibc" else False
     return {"mode": mode, "allocator": allocator, "keep_freed_memory": keep,
-            "xla_flags": _add_xla_flags(wanted), "inline_dispatch": _dispatch_inline()}
+            "xla_flags": _add_xla_flags(wanted)}
 
 
 def print_allocator_env() -> None:
