@@ -102,7 +102,7 @@ def acting_state(state: AgentState) -> AgentState:
 
     `act` gives the same result on it. A jitted call flattens its arguments on every dispatch, so a
     Python-side acting loop should pass this (42 leaves at `cpu`) rather than the whole state with its
-    optimiser moments (326 leaves): measured 0.15 ms instead of 0.33 ms per call (experiments/bench_core.py).
+    optimiser moments (326 leaves).
     """
     def params_only(net: NetState) -> NetState:
         return NetState(net.params, None)
