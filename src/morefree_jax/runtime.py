@@ -21,7 +21,8 @@ MOREFREE_JAX_RUNTIME picks them (measured with experiments/bench_core.py on the 
 XLA flags take effect only if no JAX backend exists yet; flags already in XLA_FLAGS are left as they are.
 
 jemalloc, where installed (Debian/Ubuntu `libjemalloc2`), does better than any glibc setting: per-thread
-caches instead of one contended arena, and with purging off (`JEMALLOC_CONF`) no page is faulted in twice.
+caches instead of one contended arena, and with purging off (`MALLOC_CONF=JEMALLOC_CONF`) no page is
+faulted in twice.
 Measured on the 2-core machine: the `paper` train step 6.8-7.1 s (glibc, `large`) -> 5.8 s, the `cpu`
 step 70-75 -> 60-65 ms. An allocator is chosen when a process starts, so it is preloaded by the launchers:
 `make train/evaluate/bench` run their command under `allocator_env()` (printed by
