@@ -6,7 +6,8 @@ AGENT ?= morefree
 PRESET ?= cpu
 SEED ?= 0
 TEST_WORKERS ?= 2
-STEPS ?= 1000000
+# Empty STEPS = the task's budget (its default_config: point_umaze 2e5 ... ant 8e5).
+STEPS ?=
 ARGS ?=
 RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
 # jemalloc preloaded where installed (libjemalloc2): ~15% faster learner steps (see morefree_jax/runtime.py).
@@ -34,7 +35,7 @@ bench:
 # Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
 train:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) seed=$(SEED) \
-		steps=$(STEPS) $(ARGS)
+		$(if $(STEPS),steps=$(STEPS)) $(ARGS)
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)

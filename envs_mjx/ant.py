@@ -26,7 +26,14 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs_mjx.base import ResetFreeEnv, clip_action, distance_to_box, physics_substeps, put_mjx_model
+from envs_mjx.base import (
+    ResetFreeEnv,
+    clip_action,
+    distance_to_box,
+    learner_defaults,
+    physics_substeps,
+    put_mjx_model,
+)
 
 GEAR = 30.0
 INIT_QPOS = np.array([0.0, 0.0, 0.55, 1.0, 0.0, 0.0, 0.0] + [0.0] * 8, np.float32)
@@ -94,6 +101,21 @@ class Ant(ResetFreeEnv):
 
     def xy(self, obs: jax.Array) -> jax.Array:
         return obs[:2]
+
+    @classmethod
+    def default_config(cls) -> dict:
+        """PEG's ant-maze values (agent.md 8.1, 4.1, 5.1-5.2); budget 8e5 steps (the paper: 4 hard resets
+        at one per 2e5 steps)."""
+        return {
+            "run.total_steps": 800_000, "run.prefill": 2_500, "run.train_every": 2,
+            "run.subgoal_threshold": 2.0,
+            **learner_defaults(entropy=1e-5, discount=0.996, p2e_discount=0.996, neg_factor=0.1),
+            # MPPI gamma 2, 500 candidates, 5 iterations, horizon 150 (PEG's H_G), std_scale 10, initial-state
+            # candidate, last 10 steps.
+            "planner.method": "mppi", "planner.num_candidates": 500, "planner.iterations": 5,
+            "planner.mppi_temperature": 2.0, "planner.init_std": 10.0, "planner.horizon": 150,
+            "planner.use_last_steps": 10, "planner.init_mean": "initial_state",
+        }
 
     @property
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,8 @@ The reset-free extension (design.md section 3):
   xy(obs)                                the planar position shown in visitation heatmaps
   observation_bounds                     (low, high) box of plausible observations, for goal search
   eval_episode_length, hard_reset_every  episodic evaluation length, hard-reset period of the stream
+  default_config()                       the task's own defaults for a training run (PEG's per-task
+                                         values, train ratio, budget, prefill, planner), as dotted keys
 """
 
 from __future__ import annotations
@@ -69,6 +71,14 @@ def distance_to_box(low: jax.Array, high: jax.Array, x: jax.Array) -> jax.Array:
     return jnp.linalg.norm(x - jnp.clip(x, low, high))
 
 
+def learner_defaults(entropy: float, discount: float, p2e_discount: float, neg_factor: float) -> dict:
+    """PEG's per-task learner keys (agent.md 8.1: actor_ent, discount, p2e_discount,
+    dd_neg_sampling_factor) as dotted config keys. The Plan2Explore actor-critic shares the goal-conditioned
+    one's entropy scale (agent.md 3: "same actor/critic/optimiser/horizon/lambda/entropy settings")."""
+    return {"agent.gc.entropy": entropy, "agent.explore.ac.entropy": entropy, "agent.gc.discount": discount,
+            "agent.explore.ac.discount": p2e_discount, "agent.distance.neg_factor": neg_factor}
+
+
 class ResetFreeEnv(Env, abc.ABC):
     """Base of every task. Subclasses set the class attributes and implement the abstract methods.
 
@@ -119,6 +129,15 @@ class ResetFreeEnv(Env, abc.ABC):
         return float(self.mj_model.opt.timestep) * self.frames_per_step
 
     frames_per_step: ClassVar[int] = 1
+
+    @classmethod
+    @abc.abstractmethod
+    def default_config(cls) -> dict:
+        """The task's defaults for a training run, {dotted config key: value} (mujoco_playground's
+        `default_config()` in spirit): run.total_steps (budget), run.prefill, run.train_every (the paper's
+        train ratio), run.subgoal_threshold, PEG's per-task learner values (`learner_defaults`) and the
+        planner.* settings. config_run.resolve_config layers them over the preset and under the variant
+        and the user's keys, and config.json records the resolved values."""
 
     # ---- reset-free extension ----------------------------------------------------------------
     @abc.abstractmethod

@@ -44,7 +44,7 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs_mjx.base import ResetFreeEnv, physics_substeps
+from envs_mjx.base import ResetFreeEnv, learner_defaults, physics_substeps
 
 MOCAP_STEP = 0.01  # metres of mocap displacement per unit action and axis
 WORKSPACE_LOW = np.array([-0.5, 0.40, 0.05], np.float32)
@@ -90,6 +90,22 @@ class SawyerDoor(ResetFreeEnv):
     act_size = 4
     goal_dims = (4, 5, 6)
     frames_per_step = 5
+
+    @classmethod
+    def default_config(cls) -> dict:
+        """No PEG config exists. Learner: PEG's 3-block-stacking values (entropy 1e-5, negatives 0.1), its
+        closest task (a gripper manipulating an object). Train ratio 5 (paper), budget 4e5 steps (the paper:
+        2 hard resets at one per 2e5 steps), PEG's prefill and subgoal threshold defaults (2500 steps, 2).
+        Planner: PEG's default MPPI (gamma 10, last 10 steps), std_scale 0.5 for a workspace of ~0.5 m
+        (choice), horizon 150 = H_G."""
+        return {
+            "run.total_steps": 400_000, "run.prefill": 2_500, "run.train_every": 5,
+            "run.subgoal_threshold": 2.0,
+            **learner_defaults(entropy=1e-5, discount=0.99, p2e_discount=0.99, neg_factor=0.1),
+            "planner.method": "mppi", "planner.num_candidates": 500, "planner.iterations": 5,
+            "planner.mppi_temperature": 10.0, "planner.init_std": 0.5, "planner.horizon": 150,
+            "planner.use_last_steps": 10, "planner.init_mean": "current",
+        }
 
     def __init__(self, eval_episode_length=300, hard_reset_every=200_000, success_threshold=0.02):
         super().__init__(eval_episode_length, hard_reset_every, success_threshold)

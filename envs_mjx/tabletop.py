@@ -33,7 +33,7 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs_mjx.base import ResetFreeEnv, distance_within
+from envs_mjx.base import ResetFreeEnv, distance_within, learner_defaults
 
 MOVE_SCALE = 0.2  # metres of gripper displacement per unit action
 TABLE_LIMIT = 2.8  # gripper and mug xy are clipped to [-2.8, 2.8]
@@ -74,6 +74,22 @@ class Tabletop(ResetFreeEnv):
     act_size = 3
     goal_dims = (0, 1, 2, 3)
     frames_per_step = 1
+
+    @classmethod
+    def default_config(cls) -> dict:
+        """No PEG config exists. Learner: PEG's point-maze values (entropy 1e-4, no distance negatives),
+        since like the point maze it is a planar task whose state is a few positions. Train ratio 1 (paper),
+        budget 2e5 steps (the paper: one hard reset, at the start, at one per 2e5 steps), PEG's prefill and
+        subgoal threshold defaults (2500 steps, 2). Planner: PEG's default MPPI (gamma 10, last 10 steps),
+        std_scale 1 matched to the +-2.5 coordinate range (choice), horizon 100 = H_G."""
+        return {
+            "run.total_steps": 200_000, "run.prefill": 2_500, "run.train_every": 1,
+            "run.subgoal_threshold": 2.0,
+            **learner_defaults(entropy=1e-4, discount=0.99, p2e_discount=0.99, neg_factor=0.0),
+            "planner.method": "mppi", "planner.num_candidates": 500, "planner.iterations": 5,
+            "planner.mppi_temperature": 10.0, "planner.init_std": 1.0, "planner.horizon": 100,
+            "planner.use_last_steps": 10, "planner.init_mean": "current",
+        }
 
     def __init__(self, eval_episode_length=200, hard_reset_every=200_000, success_threshold=0.2):
         super().__init__(eval_episode_length, hard_reset_every, success_threshold)

@@ -11,8 +11,10 @@ Rows {"section", "name", "value", "unit", "note"}:
   planner/<task>_search_s     one PEG goal search with the task's planner config and the paper-size agent,
                               compiled once (the trace count is checked); ant: 500 candidates, horizon 150,
                               5 iterations. Bar: <= 20 s. Reference: 39-43 s per call.
-  chunk/*                     one chunk of the `cpu`-preset run on point_umaze: collect (no re-plan), train
-                              (chunk_len / train_every updates) and their shares.
+  chunk/*                     one chunk of the `cpu`-preset run on point_umaze: collect with a goal search
+                              (rf_peg: every chunk), collect without one (task goals), train (chunk_len /
+                              train_every updates); the search's share of a morefree chunk (a search on
+                              the 2/3 of chunks that pursue planner goals) and of an rf_peg chunk.
 quick=True: the point_umaze collection row only (about 20 s).
 """
 
@@ -29,8 +31,9 @@ import envs_mjx
 from morefree_jax.agent import EnvSpec, make_agent
 from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
 from morefree_jax.config import preset
+from morefree_jax.config_run import resolve_config
 from morefree_jax.go_explore import ScheduleConfig, init_schedule
-from morefree_jax.planner import plan_goal, planner_config_for, start_search
+from morefree_jax.planner import plan_goal, start_search
 
 SECTION = "loop"
 REFERENCE_STEPS_PER_S = 370.0  # TF2 original: policy 1.1-1.6 ms + distance check 1.1 ms per env step
@@ -50,6 +53,12 @@ def _median_time(fn, reps: int) -> float:
     return sorted(times)[len(times) // 2]
 
 
+def planner_config(task: str, preset_name: str = "paper"):
+    """The task's resolved planner config (its default_config under the preset)."""
+    arguments = [f"env={task}", f"preset={preset_name}", "run_dir=/nonexistent"]
+    return resolve_config(arguments, envs_mjx.ALL_ENVS).planner
+
+
 def collection_rows(task: str, chunks: int = 5) -> list[dict]:
     """Fused collection steps/s of an untrained paper-size agent (eval goals; the search is timed apart)."""
     env = envs_mjx.make(task)
@@ -58,7 +67,7 @@ def collection_rows(task: str, chunks: int = 5) -> list[dict]:
     cfg = CollectConfig(half, env.eval_episode_length - half, subgoal_threshold=1e-9,
                         hard_reset_every=env.hard_reset_every)
     schedule_cfg = ScheduleConfig(kind="eval_only")
-    planner_cfg = planner_config_for(task)
+    planner_cfg = planner_config(task)
     chunk = jax.jit(functools.partial(collect_chunk, env, agent, cfg, planner_cfg, schedule_cfg))
     key_agent, key_stream = jax.random.split(jax.random.PRNGKey(0))
     agent_state = jax.jit(agent.init)(key_agent)
@@ -85,7 +94,7 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
     """Seconds per PEG goal search (paper-size agent, the task's planner config), compiled once."""
     env = envs_mjx.make(task)
     agent = make_agent(preset("paper"), EnvSpec.from_env(env))
-    config = planner_config_for(task)
+    config = planner_config(task)
     low, high = (jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
     traces = []
 
@@ -114,16 +123,15 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
     return [_row(f"planner/{task}_search_s", seconds, "s", note)]
 
 
-def chunk_rows(chunks: int = 2) -> list[dict]:
-    """Collect vs train time of one chunk of the cpu-preset point_umaze run (no goal re-optimisation)."""
-    from morefree_jax.config_run import resolve_config
+def _chunk_times(agent: str, chunks: int) -> tuple[float, float, object]:
+    """(fastest collect s, fastest train s, Run) of `chunks` chunks of a cpu-preset point_umaze run."""
     from morefree_jax.loop import prepare_run
 
-    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu", "run_dir=/nonexistent"],
+    config = resolve_config(["env=point_umaze", f"agent={agent}", "preset=cpu", "run_dir=/nonexistent"],
                             envs_mjx.ALL_ENVS)
     run = prepare_run(config)
     state = run.prefill(run.init(jax.random.PRNGKey(0)))
-    state, _ = jax.block_until_ready(run.collect(state))  # compiles; the first chunk re-plans
+    state, _ = jax.block_until_ready(run.collect(state))  # compiles
     state, _ = jax.block_until_ready(run.train_updates(state))  # compiles
     collect_s, train_s = [], []
     for _ in range(chunks):
@@ -133,14 +141,34 @@ def chunk_rows(chunks: int = 2) -> list[dict]:
         start = time.perf_counter()
         state, _ = jax.block_until_ready(run.train_updates(state))
         train_s.append(time.perf_counter() - start)
-    collect, train = min(collect_s), min(train_s)
-    total = collect + train
-    note = f"cpu preset, point_umaze, {run.chunk_len} env steps + {run.updates_per_chunk} updates per chunk"
+    return min(collect_s), min(train_s), run
+
+
+def chunk_rows(chunks: int = 3) -> list[dict]:
+    """Time of one chunk of the cpu-preset point_umaze run and the goal search's share of it: rf_peg
+    searches on every chunk, mf_task_only never (same steps and updates), so their collect times differ
+    by one search. A morefree chunk searches with probability (1 - alpha) / (1 + alpha) = 2/3."""
+    search_collect, train, run = _chunk_times("rf_peg", chunks)
+    plain_collect, _, _ = _chunk_times("mf_task_only", chunks)
+    search = max(search_collect - plain_collect, 0.0)
+    planner_share = 1 - ScheduleConfig(kind="back_and_forth", alpha=0.2).task_chunk_share()
+    morefree = train + plain_collect + planner_share * search
+    rf_peg = train + search_collect
+    planner = run.config.planner
+    note = (f"cpu preset, point_umaze, {run.chunk_len} env steps + {run.updates_per_chunk} updates/chunk; "
+            f"search {planner.method}, {planner.num_candidates} candidates, {planner.iterations} iterations, "
+            f"horizon {planner.horizon}")
     return [
-        _row("chunk/point_umaze_cpu_s", total, "s", note),
-        _row("chunk/point_umaze_cpu_collect_share", 100 * collect / total, "%", f"collect {collect:.3f} s"),
-        _row("chunk/point_umaze_cpu_train_share", 100 * train / total, "%", f"train {train:.3f} s"),
-        _row("chunk/point_umaze_cpu_steps_per_s", run.chunk_len / total, "steps/s", "collect + train"),
+        _row("chunk/point_umaze_cpu_search_s", search, "s", note),
+        _row("chunk/point_umaze_cpu_collect_s", plain_collect, "s", "collect without a search"),
+        _row("chunk/point_umaze_cpu_train_s", train, "s", "train updates of one chunk"),
+        _row("chunk/point_umaze_cpu_morefree_s", morefree, "s", "expected chunk: search on 2/3 of chunks"),
+        _row("chunk/point_umaze_cpu_morefree_search_share", 100 * planner_share * search / morefree, "%",
+             "share of the goal search in a morefree chunk"),
+        _row("chunk/point_umaze_cpu_rf_peg_search_share", 100 * search / rf_peg, "%",
+             "share of the goal search in an rf_peg chunk (search every chunk)"),
+        _row("chunk/point_umaze_cpu_morefree_steps_per_s", run.chunk_len / morefree, "steps/s",
+             "collect + train, morefree"),
     ]
 
 

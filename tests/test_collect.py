@@ -13,6 +13,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from morefree_jax.agent import MODE_EXPLORE
 from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
@@ -54,25 +55,25 @@ PLANNER = PlannerConfig(method="cem", num_candidates=200, iterations=6, init_std
 
 
 @functools.cache
-def compiled_chunk(cfg: CollectConfig, schedule_cfg: ScheduleConfig):
+def compiled_chunk(cfg: CollectConfig, schedule_cfg: ScheduleConfig, planner_cfg: PlannerConfig = PLANNER):
     env = cached_env("point_umaze")
-    return jax.jit(functools.partial(collect_chunk, env, AGENT, cfg, PLANNER, schedule_cfg))
+    return jax.jit(functools.partial(collect_chunk, env, AGENT, cfg, planner_cfg, schedule_cfg))
 
 
 def fresh(schedule_cfg: ScheduleConfig):
     env = cached_env("point_umaze")
-    return (init_stream(env, AGENT, jax.random.PRNGKey(1)), init_schedule(env.observation_size, schedule_cfg),
+    return (init_stream(env, AGENT, jax.random.PRNGKey(1)), init_schedule(env.observation_size),
             start_search(PLANNER, jnp.zeros(env.observation_size)))
 
 
 MAIN = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=37)
-BACK_AND_FORTH = ScheduleConfig(kind="back_and_forth", alpha=0.2, goal_update_every=3)
+BACK_AND_FORTH = ScheduleConfig(kind="back_and_forth", alpha=0.2)
 
 
-def run_chunk(distance: float, cfg=MAIN, schedule_cfg=BACK_AND_FORTH, start=None, key=0):
+def run_chunk(distance: float, cfg=MAIN, schedule_cfg=BACK_AND_FORTH, start=None, key=0, planner_cfg=PLANNER):
     stream, schedule, planner = start or fresh(schedule_cfg)
-    return compiled_chunk(cfg, schedule_cfg)({"distance": jnp.float32(distance)}, stream, schedule, planner,
-                                             jax.random.PRNGKey(key))
+    return compiled_chunk(cfg, schedule_cfg, planner_cfg)({"distance": jnp.float32(distance)}, stream,
+                                                          schedule, planner, jax.random.PRNGKey(key))
 
 
 def test_go_phase_lasts_h_g_steps_when_the_learned_distance_stays_above_threshold():
@@ -104,22 +105,56 @@ def test_replay_transitions_are_the_stream_observations_and_reset_starts_at_an_i
 
 
 def test_planner_chunk_goal_comes_from_the_search():
-    schedule_cfg = ScheduleConfig(kind="planner", goal_update_every=3)
+    schedule_cfg = ScheduleConfig(kind="planner")
     stream, schedule, planner, _, metrics = run_chunk(10.0, schedule_cfg=schedule_cfg)
-    assert metrics["goal/replanned"] == 1 and metrics["goal/type"] == GoalType.PLANNER
+    assert metrics["goal/searched"] == 1 and metrics["goal/type"] == GoalType.PLANNER
     np.testing.assert_allclose(np.asarray(planner.mean), TARGET, atol=0.3)
     np.testing.assert_allclose(np.asarray(stream.goal)[:2], TARGET[:2], atol=1.0)
-    # next chunk: no re-optimisation, a sample of the stored Gaussian
-    start = (stream, schedule, planner)
-    _, _, planner2, _, metrics2 = run_chunk(10.0, schedule_cfg=schedule_cfg, start=start)
-    assert metrics2["goal/replanned"] == 0
-    np.testing.assert_array_equal(np.asarray(planner2.mean), np.asarray(planner.mean))
+
+
+@pytest.mark.parametrize("schedule_cfg", [ScheduleConfig(kind="planner"), BACK_AND_FORTH],
+                         ids=["rf_peg", "morefree"])
+def test_every_planner_chunk_runs_a_fresh_search(schedule_cfg):
+    """Reset-free PEG optimises the goal distribution every H_G + H_E steps (paper appendix); MoReFree
+    keeps that for its planner chunks. Counted by the planner state over 12 chunks."""
+    start, types = fresh(schedule_cfg), []
+    for key in range(12):
+        outputs = run_chunk(10.0, schedule_cfg=schedule_cfg, start=start, key=key)
+        start, planner, metrics = outputs[:3], outputs[2], outputs[4]
+        types.append(int(metrics["goal/type"]))
+        assert metrics["goal/searched"] == (types[-1] == GoalType.PLANNER)
+        # A fresh search starts from N(current obs, 3) and needs its iterations: first-round score is low.
+        if types[-1] == GoalType.PLANNER:
+            assert float(metrics["planner/score_first"]) < float(metrics["planner/score"]) - 1.0
+    planner_chunks = int(np.sum(np.array(types) == GoalType.PLANNER))
+    assert int(planner.searches) == planner_chunks > 0
+    if schedule_cfg.kind == "planner":
+        assert planner_chunks == 12
+
+
+def test_a_hard_reset_due_on_the_first_step_comes_before_the_goal_choice():
+    """With a near-zero search spread around the current observation, the planner goal is the state the
+    goal was chosen from: it must be the reset state, not where the previous chunk ended."""
+    cfg = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=100)
+    schedule_cfg = ScheduleConfig(kind="planner")
+    pinned = PlannerConfig(method="cem", num_candidates=8, iterations=1, init_std=1e-4, horizon=2,
+                           use_last_steps=None, init_mean="current")
+    first = run_chunk(10.0, cfg, schedule_cfg, planner_cfg=pinned)
+    end_of_first = np.asarray(first[0].env_state.obs)
+    assert int(first[0].steps) == 100 and np.linalg.norm(end_of_first[:2]) > 2.0  # far from the start
+    stream, _, _, transitions, metrics = run_chunk(10.0, cfg, schedule_cfg, start=first[:3], key=1,
+                                                   planner_cfg=pinned)
+    reset_obs = np.asarray(transitions.obs[0])
+    assert bool(transitions.reset[0]) and not np.any(np.asarray(transitions.reset[1:]))  # reset once
+    assert np.all(np.abs(reset_obs[:3]) <= 0.1)  # an initial state
+    np.testing.assert_allclose(np.asarray(stream.goal), reset_obs, atol=0.01)
+    assert metrics["collect/hard_resets"] == 1
 
 
 def test_episodic_goal_and_phases_span_the_hard_reset_segment():
     cfg = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=200,
                         episodic=True)
-    schedule_cfg = ScheduleConfig(kind="episodic_planner", goal_update_every=1)
+    schedule_cfg = ScheduleConfig(kind="episodic_planner")
     start, goals, go_steps = fresh(schedule_cfg), [], []
     for key in range(3):
         stream, schedule, planner, _, metrics = run_chunk(10.0, cfg, schedule_cfg, start, key=key)

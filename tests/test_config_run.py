@@ -15,7 +15,6 @@ from morefree_jax.config_run import (
     check_choice,
     config_from_dict,
     config_to_dict,
-    train_every_for,
     valid_keys,
 )
 
@@ -108,10 +107,6 @@ def test_valid_keys_and_choices():
         check_choice("env", "pointmaze", ("point_umaze", "ant"))
 
 
-def test_run_config_task_train_ratio_and_dir():
-    envs = ("point_umaze", "sawyer_door", "tabletop", "fetch_push")
-    assert [train_every_for(env) for env in envs] == [2, 5, 1, 2]
-    assert RunConfig(env="sawyer_door").resolved_train_every == 5
-    assert RunConfig(env="tabletop", train_every=3).resolved_train_every == 3
+def test_run_config_dir_and_defaults():
     assert RunConfig(env="ant", agent="rf_peg", seed=2).resolved_run_dir == "runs/ant/rf_peg/seed2"
     assert RunConfig().eval_episodes == 10

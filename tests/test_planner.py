@@ -10,7 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import envs_mjx
 from morefree_jax import planner
+from morefree_jax.config_run import resolve_config
 
 LOW = jnp.array([-2.0, -2.0, -1.0])
 HIGH = jnp.array([10.0, 10.0, 1.0])
@@ -33,10 +35,15 @@ def compiled_plan(score_fn, config):
     return jax.jit(functools.partial(planner.plan_goal, score_fn, config=config))
 
 
+def task_planner(task: str, *overrides: str) -> planner.PlannerConfig:
+    """The planner config a run on `task` resolves to (the task's default_config), with overrides."""
+    return resolve_config([f"env={task}", *overrides], envs_mjx.ALL_ENVS).planner
+
+
 CONFIGS = {
     # The per-task configurations the runs use (PEG point maze CEM, PEG ant-maze MPPI temperature).
-    "cem": planner.planner_config_for("point_umaze"),
-    "mppi": planner.planner_config_for("ant", init_std=4.0),
+    "cem": task_planner("point_umaze"),
+    "mppi": task_planner("ant", "planner.init_std=4.0"),
 }
 
 
@@ -124,14 +131,14 @@ def test_config_validation_and_task_defaults():
     with pytest.raises(ValueError, match="cem_elite_fraction"):
         planner.PlannerConfig(cem_elite_fraction=0.0)
     assert planner.PlannerConfig(num_candidates=500).num_elites == 100
-    ant = planner.planner_config_for("ant")
+    ant = task_planner("ant")
     assert (ant.method, ant.mppi_temperature, ant.horizon, ant.init_std, ant.use_last_steps) == (
         "mppi", 2.0, 150, 10.0, 10)
-    assert planner.planner_config_for("point_umaze", iterations=3).iterations == 3
+    assert task_planner("point_umaze", "planner.iterations=3").iterations == 3
 
 
-def test_every_registered_task_has_planner_defaults():
-    import envs_mjx
-    from morefree_jax.planner import PLANNER_DEFAULTS
-
-    assert set(envs_mjx.ALL_ENVS) <= set(PLANNER_DEFAULTS), set(envs_mjx.ALL_ENVS) - set(PLANNER_DEFAULTS)
+@pytest.mark.parametrize("task", envs_mjx.ALL_ENVS)
+def test_every_registered_task_sets_its_planner(task):
+    defaults = envs_mjx.env_class(task).default_config()
+    assert {"planner.method", "planner.horizon", "planner.init_std"} <= set(defaults)
+    assert task_planner(task).horizon == defaults["planner.horizon"]

@@ -1,4 +1,4 @@
-"""Goal schedules over many simulated chunks: shares, forth -> back pairing, re-planning cadence."""
+"""Goal schedules over many simulated chunks: shares, forth -> back pairs, a search on every planner chunk."""
 
 from __future__ import annotations
 
@@ -18,12 +18,12 @@ from morefree_jax.go_explore import (
     commit_goal,
     init_schedule,
     next_chunk_goal,
-    pair_start_probability,
     schedule_metrics,
 )
 from morefree_jax.planner import PlannerState
 
 NUM_CHUNKS = 10_000
+NUM_DECISIONS = 30_000
 GOAL_SIZE = 3
 
 
@@ -43,23 +43,28 @@ def simulate(config: ScheduleConfig, num_chunks: int = NUM_CHUNKS):
                 initial_goal=jnp.array([2.0, index, 0.0]),
                 planner_goal=jnp.array([0.0, index, 0.0]),
             )
-            return state, (choice.goal_type, choice.replan, goal)
+            return state, (choice.goal_type, choice.search, goal)
 
         return jax.lax.scan(chunk, init_schedule(GOAL_SIZE, config), jax.random.split(key, num_chunks))
 
-    final, (types, replans, goals) = run(jax.random.PRNGKey(0))
-    return final, np.asarray(types), np.asarray(replans), np.asarray(goals)
+    final, (types, searches, goals) = run(jax.random.PRNGKey(0))
+    return final, np.asarray(types), np.asarray(searches), np.asarray(goals)
 
 
-def test_back_and_forth_shares_and_pairing():
+def test_back_and_forth_follows_the_paper_algorithm_literally():
     config = ScheduleConfig(kind="back_and_forth", alpha=0.2)
-    final, types, _, goals = simulate(config)
+    # 30,000 decisions yield ~36,000 chunks (a decision is a forth + back pair with probability 0.2).
+    final, types, searches, goals = simulate(config, 37_000)
     forth, back = types == GoalType.EVAL, types == GoalType.INITIAL
-    # alpha/2 = 0.1 of the chunks go forth, 0.1 back, 0.8 plan. Pairs start on free chunks with p = 1/9:
-    # about 1000 pairs, sd ~ sqrt(9000 * 1/9 * 8/9) ~ 30 -> share sd 0.003; tolerance 4 sd.
-    assert abs(forth.mean() - 0.1) < 0.012, forth.mean()
-    assert abs(back.mean() - 0.1) < 0.012, back.mean()
-    assert abs((types == GoalType.PLANNER).mean() - 0.8) < 0.024
+    decisions = np.flatnonzero(~back)  # every chunk that is not the back half of a pair draws r
+    end = decisions[NUM_DECISIONS]  # the first chunk of decision 30,001
+    forth, back, planner_chunks = forth[:end], back[:end], types[:end] == GoalType.PLANNER
+    # Alg. alg:bfge: P(pair) = alpha per decision, so the task share is 2 alpha / (1 + alpha) = 1/3
+    # (forth 1/6, back 1/6). Pairs ~ Binomial(30000, 0.2): sd 69 pairs -> task-share sd ~0.0014; bar 0.01.
+    task_share = (forth.sum() + back.sum()) / end
+    assert abs(task_share - 1 / 3) < 0.01, task_share
+    assert config.task_chunk_share() == pytest.approx(1 / 3)
+    assert abs(forth.sum() / NUM_DECISIONS - 0.2) < 0.01  # the draw itself: alpha per decision
     # Every forth chunk is followed by a back chunk, and every back chunk follows a forth chunk.
     forth_index = np.flatnonzero(forth[:-1])
     assert np.all(back[forth_index + 1])
@@ -68,14 +73,14 @@ def test_back_and_forth_shares_and_pairing():
     np.testing.assert_array_equal(goals[:, 0], types.astype(np.float32))
     np.testing.assert_array_equal(goals[forth_index + 1, 1], goals[forth_index, 1])
     np.testing.assert_array_equal(np.asarray(final.type_counts), np.bincount(types, minlength=3))
+    # The goal search runs on every planner chunk and on no task chunk.
+    np.testing.assert_array_equal(searches[:end], planner_chunks)
 
 
-def test_pair_probability_reading_of_alpha():
-    assert pair_start_probability(0.2) == pytest.approx(1 / 9)
-    assert pair_start_probability(0.0) == 0.0 and pair_start_probability(1.0) == 1.0
-    _, types, replans, _ = simulate(ScheduleConfig(kind="back_and_forth", alpha=1.0), 200)
+def test_alpha_one_only_goes_back_and_forth():
+    _, types, searches, _ = simulate(ScheduleConfig(kind="back_and_forth", alpha=1.0), 200)
     np.testing.assert_array_equal(types, np.tile([GoalType.EVAL, GoalType.INITIAL], 100))
-    assert not replans.any()
+    assert not searches.any()
 
 
 @pytest.mark.parametrize("config", [
@@ -83,24 +88,11 @@ def test_pair_probability_reading_of_alpha():
     ScheduleConfig(kind="back_and_forth", alpha=0.0),  # mf_no_bfge
     ScheduleConfig(kind="episodic_planner"),
 ], ids=["rf_peg", "bfge_alpha0", "episodic_peg"])
-def test_planner_schedules_never_use_task_goals(config):
-    _, types, replans, goals = simulate(config)
+def test_planner_schedules_never_use_task_goals_and_search_every_chunk(config):
+    _, types, searches, goals = simulate(config)
     assert np.all(types == GoalType.PLANNER) and np.all(goals[:, 0] == 0.0)
-    # Re-optimise at the first chunk and then every goal_update_every (50) chunks: 200 searches.
-    np.testing.assert_array_equal(np.flatnonzero(replans), np.arange(0, NUM_CHUNKS, 50))
-
-
-def test_replanning_counts_all_chunks_and_waits_for_a_planner_chunk():
-    _, types, replans, _ = simulate(ScheduleConfig(kind="back_and_forth", alpha=0.2, goal_update_every=5))
-    assert np.all(types[replans] == GoalType.PLANNER)
-    replan_index = np.flatnonzero(replans)
-    assert replan_index[0] == np.flatnonzero(types == GoalType.PLANNER)[0]
-    assert np.all(np.diff(replan_index) >= 5)
-    # Between searches a and b, no planner chunk at least 5 chunks after a goes without a search.
-    for a, b in zip(replan_index[:-1], replan_index[1:], strict=True):
-        assert not np.any(types[a + 5:b] == GoalType.PLANNER), (a, b)
-    # 80% of chunks are planner chunks, so a search is rarely delayed much beyond 5 chunks.
-    assert 5.0 < np.diff(replan_index).mean() < 7.0
+    assert searches.all()  # a fresh search on every chunk (episodic PEG makes one choice per segment)
+    assert config.task_chunk_share() == 0.0
 
 
 def test_eval_only_always_uses_eval_goals():
@@ -117,7 +109,7 @@ def test_phase_lengths_metrics_and_validation():
     choice = choose_goal_type(config, state, jax.random.PRNGKey(0))
     _, state = commit_goal(config, state, choice, jnp.ones(3), 2 * jnp.ones(3), jnp.zeros(3))
     metrics = schedule_metrics(choice, state)
-    assert set(metrics) == {"goal/type", "goal/replanned"} | {f"goal/share_{n}" for n in GOAL_TYPE_NAMES}
+    assert set(metrics) == {"goal/type", "goal/searched"} | {f"goal/share_{n}" for n in GOAL_TYPE_NAMES}
     assert float(sum(metrics[f"goal/share_{n}"] for n in GOAL_TYPE_NAMES)) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="schedule kind must be one of"):
         ScheduleConfig(kind="random")
@@ -125,9 +117,8 @@ def test_phase_lengths_metrics_and_validation():
         ScheduleConfig(alpha=1.5)
 
 
-def test_next_chunk_goal_searches_only_when_due_and_compiles_once():
-    config = ScheduleConfig(kind="planner", goal_update_every=3)
-    low, high = -jnp.ones(GOAL_SIZE) * 100, jnp.ones(GOAL_SIZE) * 100
+def test_next_chunk_goal_searches_on_every_planner_chunk_and_compiles_once():
+    config = ScheduleConfig(kind="back_and_forth", alpha=0.5)
 
     def fake_search(planner_state, key):
         # A "search" moves the Gaussian's mean by +1 and returns a goal tagged 50 + new mean.
@@ -137,18 +128,24 @@ def test_next_chunk_goal_searches_only_when_due_and_compiles_once():
     @chex.assert_max_traces(n=1)
     def step(schedule_state, planner_state, key):
         return next_chunk_goal(config, schedule_state, planner_state, key, jnp.ones(GOAL_SIZE),
-                               2 * jnp.ones(GOAL_SIZE), fake_search, low, high)
+                               2 * jnp.ones(GOAL_SIZE), fake_search)
 
     step = jax.jit(step)
-    schedule_state = init_schedule(GOAL_SIZE, config)
+    schedule_state = init_schedule(GOAL_SIZE)
     planner_state = PlannerState(mean=jnp.zeros(GOAL_SIZE), std=jnp.zeros(GOAL_SIZE), score=jnp.zeros(()))
-    goals, scores = [], []
-    for index in range(7):
+    types, goals, scores = [], [], []
+    for index in range(12):
         goal, choice, schedule_state, planner_state, metrics = step(
             schedule_state, planner_state, jax.random.PRNGKey(index))
+        types.append(int(choice.goal_type))
         goals.append(float(goal[0]))
         scores.append(float(metrics["planner/score"]))
-    # Searches at chunks 0, 3, 6 (goal 50 + mean); in between, samples of the stored Gaussian (std 0: mean).
-    assert goals == [51.0, 1.0, 1.0, 52.0, 2.0, 2.0, 53.0]
-    assert scores == [7.0, 0.0, 0.0, 7.0, 0.0, 0.0, 7.0]
-    assert int(schedule_state.type_counts[GoalType.PLANNER]) == 7
+    types = np.array(types)
+    planner_chunks = types == GoalType.PLANNER
+    assert 0 < planner_chunks.sum() < 12, types  # both kinds occur with these keys
+    # The k-th planner chunk gets the k-th search's goal (50 + k); task chunks their eval / initial goal.
+    goals = np.array(goals)
+    np.testing.assert_array_equal(goals[planner_chunks], 50.0 + np.arange(1, planner_chunks.sum() + 1))
+    np.testing.assert_array_equal(goals[~planner_chunks], types[~planner_chunks].astype(float))
+    np.testing.assert_array_equal(np.array(scores), np.where(planner_chunks, 7.0, 0.0))
+    assert int(planner_state.searches) == planner_chunks.sum()

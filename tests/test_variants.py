@@ -53,11 +53,11 @@ def test_dreamer_gc_imagines_only_evaluation_goals():
 
 def test_layers_preset_task_planner_variant_then_overrides():
     config = resolve("env=point_umaze", "agent=morefree", "preset=cpu", "seed=3", "steps=5e4",
-                     "wm.deter=64", "schedule.alpha=0.3", "planner.goal_update_every=7", "eval_every=500")
+                     "wm.deter=64", "schedule.alpha=0.3", "planner.iterations=7", "eval_every=500")
     assert config.agent.wm.deter == 64 and config.agent.wm.stoch == 32  # cpu preset underneath
     assert config.planner.method == "cem" and config.planner.horizon == 50  # point_umaze planner defaults
     assert config.schedule.alpha == 0.3 and config.agent.alpha == 0.2  # override beats the variant
-    assert config.schedule.goal_update_every == config.planner.goal_update_every == 7  # one setting
+    assert config.planner.iterations == 7
     assert (config.run.seed, config.run.total_steps, config.run.eval_every) == (3, 50_000, 500)
     assert config_from_dict(Config, config_to_dict(config)) == config
 
@@ -78,3 +78,43 @@ def test_bad_input_is_a_one_line_error_naming_what_is_valid(arguments, message):
     with pytest.raises(ConfigError) as error:
         resolve("env=point_umaze", "agent=morefree", *arguments)
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("task, expected", [
+    # PEG ant maze (agent.md 8.1): entropy 1e-5, discount and P2E discount 0.996, negatives 0.1.
+    ("ant", dict(entropy=1e-5, discount=0.996, p2e_discount=0.996, neg_factor=0.1, subgoal=2.0,
+                 steps=800_000, train_every=2, prefill=2_500)),
+    # The Fetch family takes PEG's 3-block stacking: entropy 1e-5, negatives 0.1, discounts 0.99.
+    ("push_hard", dict(entropy=1e-5, discount=0.99, p2e_discount=0.99, neg_factor=0.1, subgoal=1.0,
+                       steps=500_000, train_every=2, prefill=3_750)),
+    # PEG point maze: entropy 1e-4, no negatives.
+    ("point_umaze", dict(entropy=1e-4, discount=0.99, p2e_discount=0.99, neg_factor=0.0, subgoal=1.0,
+                         steps=200_000, train_every=2, prefill=2_500)),
+    ("tabletop", dict(entropy=1e-4, discount=0.99, p2e_discount=0.99, neg_factor=0.0, subgoal=2.0,
+                      steps=200_000, train_every=1, prefill=2_500)),
+    ("sawyer_door", dict(entropy=1e-5, discount=0.99, p2e_discount=0.99, neg_factor=0.1, subgoal=2.0,
+                         steps=400_000, train_every=5, prefill=2_500)),
+])
+@pytest.mark.parametrize("preset_name", ["paper", "cpu"])
+def test_resolved_config_carries_the_task_values(task, expected, preset_name):
+    config = resolve(f"env={task}", "agent=morefree", f"preset={preset_name}")
+    agent, run = config.agent, config.run
+    assert agent.gc.entropy == agent.explore.ac.entropy == expected["entropy"]
+    assert (agent.gc.discount, agent.explore.ac.discount) == (expected["discount"], expected["p2e_discount"])
+    assert agent.distance.neg_factor == expected["neg_factor"]
+    assert (run.subgoal_threshold, run.total_steps) == (expected["subgoal"], expected["steps"])
+    assert (run.train_every, run.prefill) == (expected["train_every"], expected["prefill"])
+    written = config_to_dict(config)  # what config.json records
+    assert written["agent"]["gc"]["entropy"] == expected["entropy"]
+    assert written["run"]["total_steps"] == expected["steps"]
+    # Any key still overrides the task's value.
+    changed = resolve(f"env={task}", "agent=morefree", "gc.entropy=3e-3", "steps=1000", "train_every=7")
+    assert (changed.agent.gc.entropy, changed.run.total_steps, changed.run.train_every) == (3e-3, 1000, 7)
+
+
+def test_every_task_declares_its_defaults_in_one_place():
+    import envs_mjx
+
+    for task in envs_mjx.ALL_ENVS:
+        defaults = envs_mjx.env_class(task).default_config()
+        assert {"run.total_steps", "run.train_every", "agent.gc.entropy", "planner.method"} <= set(defaults)

@@ -3,22 +3,23 @@
     stream, schedule, planner, transitions, metrics = collect_chunk(
         env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner, key)
 
-At the start of a chunk the goal schedule (go_explore.py) picks the chunk's goal: an evaluation goal, an
-initial state, or a planner goal (PEG's search from the current latent, only when a re-optimisation is
-due). Then every step, inside the same scan and with no host round trip: the agent filters the observation
-into its latent and acts (goal-conditioned policy in the go phase, exploration policy after), the env
-steps, and in the go phase the learned temporal distance from the new observation to the goal is checked;
-below `subgoal_threshold` (or after H_G go steps) the chunk switches to exploring. The latent and the last
-action carry over between the phases and across chunks. A hard reset of the stream happens on the step
-whose stream position is a multiple of `hard_reset_every` (that step stores the reset observation with a
-zero action and reset=True, and zeroes the latent: an is_first step).
+At the start of a chunk a hard reset that is due on the chunk's first step is applied first (so the goal
+is chosen from the state the chunk really starts in), then the goal schedule (go_explore.py) picks the
+chunk's goal: an evaluation goal, an initial state, or a planner goal (PEG's search from the current
+latent, run afresh on every planner chunk). Then every step, inside the same scan and with no host round
+trip: the agent filters the observation into its latent and acts (goal-conditioned policy in the go phase,
+exploration policy after), the env steps, and in the go phase the learned temporal distance from the new
+observation to the goal is checked; below `subgoal_threshold` (or after H_G go steps) the chunk switches
+to exploring. The latent and the last action carry over between the phases and across chunks. A hard
+reset of the stream happens on the step whose stream position is a multiple of `hard_reset_every` (that
+step stores the reset observation with a zero action and reset=True, and zeroes the latent: an is_first
+step).
 
-Early switch threshold. The learned distance is in env steps (D x imagination horizon, agent.md 2.3), so
-the threshold is a number of steps, not a radius. Rule: the number of steps that covers the task's success
-radius, at least 1: point_umaze moves at most 1 unit per step and succeeds within 0.6, so 1 step. Where a
-PEG task is close we take PEG's `subgoal_threshold` (agent.md 5.1): ant maze 2, block stacking 1 (Fetch);
-2 elsewhere. (PEG's point-maze value 5 made the go phase end after one step in most chunks of our first
-point_umaze runs: with no negative pairs the distance of far goals sits near 0.3 x 15 = 4.7 steps.)
+The goal search's box: the task's observation bounds intersected with the range of observations the
+replay has visited (`goal_bounds`, from replay.visited_range), so candidates stay inside states the stream
+has been in (a velocity box of +-10 where the data sits near 0 would be out of distribution).
+
+Early switch threshold: `subgoal_threshold`, per task (the task's `default_config`, run.subgoal_threshold).
 A task's own success radius decides the logged `go/reached` (env.success during the go phase).
 
 Episodic PEG (`episodic=True`): the goal is chosen once per hard-reset segment; the go phase spans the
@@ -39,11 +40,6 @@ from morefree_jax.go_explore import GoalChoice, GoalType, ScheduleConfig, commit
 from morefree_jax.go_explore import schedule_metrics as _schedule_metrics
 from morefree_jax.planner import PlannerConfig, peg_score, plan_goal, start_search
 
-# Learned-distance threshold (env steps) for the early switch (see the module docstring).
-SUBGOAL_THRESHOLDS = {"point_umaze": 1.0, "ant": 2.0, "push": 1.0, "pick_place": 1.0, "push_hard": 1.0,
-                      "pick_place_hard": 1.0}
-DEFAULT_SUBGOAL_THRESHOLD = 2.0
-
 
 @dataclasses.dataclass(frozen=True)
 class CollectConfig:
@@ -62,12 +58,13 @@ class CollectConfig:
         return self.go_steps + self.explore_steps
 
 
-def collect_config_for(env, schedule: ScheduleConfig, explore: bool, subgoal_threshold: float | None = None,
+def collect_config_for(env, schedule: ScheduleConfig, explore: bool, subgoal_threshold: float,
                        hard_reset_every: int | None = None) -> CollectConfig:
-    """H_G = H_E = half the evaluation episode (paper section 5); without exploration H_G = the chunk."""
+    """H_G = H_E = half the evaluation episode (paper section 5); without exploration H_G = the chunk.
+    subgoal_threshold: learned distance (env steps) of the early switch (the task's default_config)."""
     length = env.eval_episode_length
     go_steps = length // 2 if explore else length
-    threshold = subgoal_threshold or SUBGOAL_THRESHOLDS.get(env.name, DEFAULT_SUBGOAL_THRESHOLD)
+    threshold = subgoal_threshold
     episodic = schedule.kind == "episodic_planner"
     reset_every = hard_reset_every or env.hard_reset_every
     if episodic and reset_every % length:
@@ -80,7 +77,9 @@ def collect_config_for(env, schedule: ScheduleConfig, explore: bool, subgoal_thr
 class StreamState:
     """The single reset-free stream. latent/prev_action: the agent's filter state BEFORE filtering
     env_state.obs; goal (O,): the current go goal; go_steps_left: go steps before the timeout switch;
-    steps: transitions emitted so far (the stream position, drives hard resets)."""
+    steps: transitions emitted so far (the stream position, drives hard resets); reset_applied: the hard
+    reset due at `steps` was already applied at the chunk start (before the goal choice), so the step that
+    emits it must not reset again."""
 
     env_state: object
     latent: object
@@ -89,6 +88,7 @@ class StreamState:
     go_active: jax.Array
     go_steps_left: jax.Array
     steps: jax.Array
+    reset_applied: jax.Array
 
 
 class Transition(NamedTuple):
@@ -113,7 +113,8 @@ def init_stream(env, agent, key: jax.Array) -> StreamState:
     return StreamState(
         env_state=env.reset(key), latent=agent.initial_latent(), prev_action=jnp.zeros(env.action_size),
         goal=jnp.zeros(size, jnp.float32), go_active=jnp.ones((), bool),
-        go_steps_left=jnp.zeros((), jnp.int32), steps=jnp.zeros((), jnp.int32))
+        go_steps_left=jnp.zeros((), jnp.int32), steps=jnp.zeros((), jnp.int32),
+        reset_applied=jnp.zeros((), bool))
 
 
 def _advance(env, agent, cfg: CollectConfig, stream: StreamState, act_fn, distance_fn, key: jax.Array):
@@ -122,7 +123,7 @@ def _advance(env, agent, cfg: CollectConfig, stream: StreamState, act_fn, distan
     no_distance = jnp.asarray(jnp.inf, jnp.float32)
 
     def hard_reset():
-        env_state = env.reset(key_reset)
+        env_state = jax.lax.cond(stream.reset_applied, lambda: stream.env_state, lambda: env.reset(key_reset))
         return env_state, agent.initial_latent(), jnp.zeros_like(stream.prev_action), no_distance
 
     def step():
@@ -140,7 +141,8 @@ def _advance(env, agent, cfg: CollectConfig, stream: StreamState, act_fn, distan
     record = StepRecord(go, env.success(env_state.obs, stream.goal), learned_distance,
                         env.goal_distance(env_state.obs, stream.goal), due)
     stream = stream.replace(env_state=env_state, latent=latent, prev_action=action, go_active=go_active,
-                            go_steps_left=go_steps_left, steps=stream.steps + 1)
+                            go_steps_left=go_steps_left, steps=stream.steps + 1,
+                            reset_applied=jnp.zeros((), bool))
     return stream, Transition(env_state.obs, action, due), record
 
 
@@ -204,16 +206,16 @@ def peg_goal_scores(agent, agent_state, start_latent, candidates: jax.Array, pla
 
 
 def choose_goal(env, agent, planner_cfg: PlannerConfig, schedule_cfg: ScheduleConfig, agent_state,
-                stream: StreamState, schedule, planner, key):
-    """The schedule's next goal (O,), with PEG's goal search from the current latent when it is due.
-    -> (goal, GoalChoice, schedule, planner, metrics)."""
+                stream: StreamState, schedule, planner, key, goal_bounds):
+    """The schedule's next goal (O,), with PEG's goal search from the current latent on planner chunks.
+    goal_bounds: (low, high) (O,) box of the search. -> (goal, GoalChoice, schedule, planner, metrics)."""
     key_eval, key_initial, key_goal, key_filter, key_start = jax.random.split(key, 5)
     eval_goal, initial_goal = env.eval_goals(key_eval), env.initial_states(key_initial)
-    low, high = (jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
     if schedule_cfg.kind == "eval_only":  # no planner at all (compiles faster)
         choice = GoalChoice(jnp.asarray(GoalType.EVAL, jnp.int32), jnp.zeros((), bool))
         goal, schedule = commit_goal(schedule_cfg, schedule, choice, eval_goal, initial_goal, eval_goal)
         return goal, choice, schedule, planner, _schedule_metrics(choice, schedule)
+    low, high = goal_bounds
     # PEG starts its search from the posterior of the current observation (agent.md 4.2.1).
     _, start_latent = agent.act(agent_state, stream.latent, stream.prev_action, stream.env_state.obs,
                                 stream.goal, key_filter, MODE_EXPLORE)
@@ -224,46 +226,69 @@ def choose_goal(env, agent, planner_cfg: PlannerConfig, schedule_cfg: ScheduleCo
         def score_fn(candidates, key_score):  # (G, O) -> (G,)
             return peg_goal_scores(agent, agent_state, start_latent, candidates, planner_cfg, key_score)
 
-        del planner_state  # every re-optimisation starts from the initial Gaussian (PEG)
-        return plan_goal(score_fn, start_search(planner_cfg, init_mean), low, high, key_search, planner_cfg)
+        # Every search starts from the initial Gaussian (PEG); only the search count carries over.
+        fresh = start_search(planner_cfg, init_mean).replace(searches=planner_state.searches)
+        return plan_goal(score_fn, fresh, low, high, key_search, planner_cfg)
 
-    return next_chunk_goal(schedule_cfg, schedule, planner, key_goal, eval_goal, initial_goal, search_fn,
-                           low, high)
+    return next_chunk_goal(schedule_cfg, schedule, planner, key_goal, eval_goal, initial_goal, search_fn)
 
 
-def _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner, key):
+def apply_due_reset(env, agent, cfg: CollectConfig, stream: StreamState, key: jax.Array) -> StreamState:
+    """The stream after the hard reset due at its current position, if one is (else unchanged): the goal of
+    a chunk is chosen after that reset, from the state the chunk really starts in. The first step of the
+    chunk then emits the reset observation without resetting again (`reset_applied`)."""
+    due = (stream.steps % cfg.hard_reset_every == 0) & ~stream.reset_applied
+
+    def reset():
+        return stream.replace(env_state=env.reset(key), latent=agent.initial_latent(),
+                              prev_action=jnp.zeros_like(stream.prev_action),
+                              reset_applied=jnp.ones((), bool))
+
+    return jax.lax.cond(due, reset, lambda: stream)
+
+
+def _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner, key,
+                 goal_bounds):
     """Goal and phase at the start of a chunk (episodic PEG: only when a segment starts)."""
+    key_reset, key_goal = jax.random.split(key)
+    stream = apply_due_reset(env, agent, cfg, stream, key_reset)
+
+    def choose(stream, schedule, planner):
+        return choose_goal(env, agent, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner,
+                           key_goal, goal_bounds)
+
     if not cfg.episodic:
-        goal, _, schedule, planner, metrics = choose_goal(env, agent, planner_cfg, schedule_cfg, agent_state,
-                                                          stream, schedule, planner, key)
+        goal, _, schedule, planner, metrics = choose(stream, schedule, planner)
         return stream.replace(goal=goal, go_active=jnp.ones((), bool),
                               go_steps_left=jnp.asarray(cfg.go_steps, jnp.int32)), schedule, planner, metrics
     into_segment = stream.steps % cfg.hard_reset_every
     new_goal = (into_segment == 0) | (schedule.chunk == 0)
 
-    def choose(operand):
+    def choose_for_segment(operand):
         stream, schedule, planner = operand
-        goal, _, schedule, planner, metrics = choose_goal(env, agent, planner_cfg, schedule_cfg, agent_state,
-                                                          stream, schedule, planner, key)
+        goal, _, schedule, planner, metrics = choose(stream, schedule, planner)
         go_steps_left = jnp.maximum(cfg.hard_reset_every // 2 - into_segment, 0).astype(jnp.int32)
         stream = stream.replace(goal=goal, go_active=go_steps_left > 0, go_steps_left=go_steps_left)
         return stream, schedule, planner, metrics
 
-    shapes = jax.eval_shape(choose, (stream, schedule, planner))[3]
+    shapes = jax.eval_shape(choose_for_segment, (stream, schedule, planner))[3]
 
     def keep(operand):
         stream, schedule, planner = operand
         return stream, schedule, planner, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
-    return jax.lax.cond(new_goal, choose, keep, (stream, schedule, planner))
+    return jax.lax.cond(new_goal, choose_for_segment, keep, (stream, schedule, planner))
 
 
 def collect_chunk(env, agent, cfg: CollectConfig, planner_cfg: PlannerConfig, schedule_cfg: ScheduleConfig,
-                  agent_state, stream: StreamState, schedule, planner, key: jax.Array):
-    """One chunk of cfg.chunk_len steps -> (stream, schedule, planner, Transition (N, ...), metrics)."""
+                  agent_state, stream: StreamState, schedule, planner, key: jax.Array, goal_bounds=None):
+    """One chunk of cfg.chunk_len steps -> (stream, schedule, planner, Transition (N, ...), metrics).
+    goal_bounds: (low, high) (O,) box of the goal search; None = the task's observation bounds."""
+    if goal_bounds is None:
+        goal_bounds = tuple(jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
     key_goal, key_steps = jax.random.split(key)
     stream, schedule, planner, metrics = _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state,
-                                                      stream, schedule, planner, key_goal)
+                                                      stream, schedule, planner, key_goal, goal_bounds)
     act_fn, distance_fn = _policy_fns(agent, cfg, agent_state)
 
     def body(stream, key_step):

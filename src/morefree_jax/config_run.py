@@ -8,7 +8,8 @@
 `Config` is the ONE config a run has and writes to config.json: the run settings (RunConfig, here), the
 learner (AgentConfig and its presets, config.py), the goal search (PlannerConfig, planner.py) and the goal
 schedule (ScheduleConfig, go_explore.py); each part stays next to the code it configures. `resolve_config`
-layers defaults < preset < the task's planner defaults < the variant (variants.py) < dotted overrides.
+layers defaults < preset < the task's own defaults (its `default_config()`, next to the task's class in
+envs_mjx) < the variant (variants.py) < the user's keys.
 
 The tools (apply_overrides, config_to_dict / config_from_dict, valid_keys) work on any frozen-dataclass
 tree. Values are parsed by the field's annotated type: int, float, bool, str, tuple[X, ...] / tuple[X, Y],
@@ -29,10 +30,6 @@ from morefree_jax.config import AgentConfig
 from morefree_jax.go_explore import ScheduleConfig
 from morefree_jax.planner import PlannerConfig
 
-# Train ratio n (update every n env steps) per task [paper appendix]: 2 for most tasks.
-TRAIN_EVERY_BY_TASK = {"sawyer_door": 5, "tabletop": 1}
-DEFAULT_TRAIN_EVERY = 2
-
 
 class ConfigError(ValueError):
     """A bad override or config value (one-line message)."""
@@ -42,12 +39,13 @@ class ConfigError(ValueError):
 class RunConfig:
     """One training run. Step counts are env steps of the single reset-free stream.
 
-    train_every: env steps per gradient update (None = the task's train ratio, `train_every_for`).
+    Task-dependent fields (None here) are filled from the task's `default_config()` by resolve_config:
+    total_steps (the task's budget), train_every (env steps per gradient update: the paper's train ratio),
+    subgoal_threshold (learned distance, env steps, under which the go phase switches to exploring).
     prefill: random-action steps before learning (PEG point maze: 50 episodes x 50 = 2500 steps).
     eval_every: PEG point maze evaluates every 1e4 steps. run_dir: None = runs/<env>/<agent>/seed<seed>.
     pretrain: gradient updates right after the prefill (PEG: 100), rounded up to whole chunks of updates.
-    hard_reset_every: None = the task's own period. subgoal_threshold: learned distance (env steps) under
-    which the go phase switches to exploring; None = the per-task default (collect.SUBGOAL_THRESHOLDS).
+    hard_reset_every: None = the task's own period.
     visitation_bins: bins per axis of the replay's xy visitation histogram logged at each evaluation.
     checkpoint_minutes: also checkpoint after this much wall-clock time (slow machines); results do not
     depend on where checkpoints fall, so it may change on resume.
@@ -57,7 +55,7 @@ class RunConfig:
     agent: str = "morefree"
     preset: str = "cpu"
     seed: int = 0
-    total_steps: int = 1_000_000
+    total_steps: int | None = None
     prefill: int = 2_500
     train_every: int | None = None
     eval_every: int = 10_000
@@ -73,7 +71,9 @@ class RunConfig:
     checkpoint_minutes: float = 10.0
 
     def __post_init__(self):
-        positive = ("total_steps", "eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
+        if self.total_steps is not None and self.total_steps <= 0:  # None: the task's budget
+            raise ConfigError(f"run.total_steps must be > 0, got {self.total_steps}")
+        positive = ("eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
                     "log_every", "visitation_bins")
         for name in positive:
             if getattr(self, name) <= 0:
@@ -88,17 +88,8 @@ class RunConfig:
                 raise ConfigError(f"run.{name} must be > 0 or none, got {getattr(self, name)}")
 
     @property
-    def resolved_train_every(self) -> int:
-        return self.train_every if self.train_every is not None else train_every_for(self.env)
-
-    @property
     def resolved_run_dir(self) -> str:
         return self.run_dir or f"runs/{self.env}/{self.agent}/seed{self.seed}"
-
-
-def train_every_for(env: str) -> int:
-    """The paper's train ratio for a task: 5 for sawyer_door, 1 for tabletop, 2 otherwise."""
-    return TRAIN_EVERY_BY_TASK.get(env, DEFAULT_TRAIN_EVERY)
 
 
 def check_choice(what: str, value: str, valid) -> None:
@@ -294,7 +285,8 @@ class Config:
 SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
 # Keys that may change when a run dir is resumed: extending a run's step budget continues it.
 RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes")
-_ALIASES = {"planner.goal_update_every": "schedule.goal_update_every"}  # one setting, stored in both
+# Filled from the task's default_config(); a run needs them resolved (resolve_config does it).
+TASK_RUN_KEYS = ("total_steps", "train_every", "subgoal_threshold")
 
 
 def _full_key(key: str) -> str:
@@ -326,45 +318,50 @@ def split_arguments(arguments) -> tuple[dict[str, str], list[str]]:
         if key in SHORT_KEYS:
             short[SHORT_KEYS[key]] = value.strip()
             continue
-        full = _full_key(key)
-        overrides.append(f"{full}={value}")
-        if full in _ALIASES or full in _ALIASES.values():
-            other = _ALIASES.get(full) or next(k for k, v in _ALIASES.items() if v == full)
-            overrides.append(f"{other}={value}")
+        overrides.append(f"{_full_key(key)}={value}")
     return short, overrides
+
+
+def task_overrides(env: str) -> list[str]:
+    """The task's default_config() as "dotted.key=value" overrides (values parsed by the field types)."""
+    from envs_mjx import env_class
+
+    def text(value) -> str:
+        return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+    return [f"{key}={text(value)}" for key, value in env_class(env).default_config().items()]
 
 
 def resolve_config(arguments, valid_envs) -> Config:
     """The root config of `train env=... agent=... preset=... seed=... steps=... key=value ...`.
 
-    Layers, later wins: defaults; the preset (learner sizes); the task's planner defaults; the variant
-    (schedule and imagination goals); the dotted overrides. Errors are one-line ConfigErrors."""
+    Layers, later wins: defaults; the preset (learner sizes); the task's default_config() (PEG's per-task
+    values, train ratio, budget, prefill, planner); the variant (schedule and imagination goals); the
+    user's keys (steps, seed and the dotted overrides). Errors are one-line ConfigErrors."""
     from morefree_jax.config import PRESETS, preset
-    from morefree_jax.planner import PLANNER_DEFAULTS
     from morefree_jax.variants import VARIANTS, apply_variant
 
     short, overrides = split_arguments(arguments)
-    try:
-        run = apply_overrides(RunConfig(), [f"{key}={value}" for key, value in short.items()])
-    except ConfigError as error:  # speak of the CLI name "steps", not the field
-        message = str(error).replace("run.total_steps", "steps").replace("total_steps", "steps")
-        raise ConfigError(message) from None
+    identity = {key: short.pop(key) for key in ("env", "agent", "preset") if key in short}
+    for override in list(overrides):  # identity keys given dotted (run.env=ant) choose the layers too
+        key, _, value = override.partition("=")
+        if key in ("run.env", "run.agent", "run.preset"):
+            identity[key[4:]] = value
+            overrides.remove(override)
+    run = apply_overrides(RunConfig(), [f"{key}={value}" for key, value in identity.items()])
     check_choice("env", run.env, valid_envs)
     check_choice("agent", run.agent, VARIANTS)
     check_choice("preset", run.preset, PRESETS)
-    planner = PlannerConfig(**PLANNER_DEFAULTS.get(run.env, {}))
-    config = Config(run=run, agent=preset(run.preset), planner=planner,
-                    schedule=ScheduleConfig(goal_update_every=planner.goal_update_every))
+    config = Config(run=run, agent=preset(run.preset))
+    config = apply_overrides(config, task_overrides(run.env))
     config = apply_variant(config, run.agent)
+    try:
+        config = apply_overrides(config, [f"run.{key}={value}" for key, value in short.items()])
+    except ConfigError as error:  # speak of the CLI name "steps", not the field
+        message = str(error).replace("run.total_steps", "steps").replace("total_steps", "steps")
+        raise ConfigError(message) from None
     config = apply_overrides(config, overrides)
-    for key in ("env", "agent", "preset"):  # identity keys may also arrive dotted (run.env=...)
-        check_choice(key, getattr(config.run, key), {"env": valid_envs, "agent": VARIANTS,
-                                                     "preset": PRESETS}[key])
-    if config.run.subgoal_threshold is None:  # resolve the per-task default so config.json records it
-        from morefree_jax.collect import DEFAULT_SUBGOAL_THRESHOLD, SUBGOAL_THRESHOLDS
-
-        threshold = SUBGOAL_THRESHOLDS.get(config.run.env, DEFAULT_SUBGOAL_THRESHOLD)
-        config = dataclasses.replace(config, run=dataclasses.replace(config.run, subgoal_threshold=threshold))
-    if config.schedule.goal_update_every != config.planner.goal_update_every and config.run.agent != "peg":
-        raise ConfigError("planner.goal_update_every and schedule.goal_update_every differ; set one of them")
+    missing = [key for key in TASK_RUN_KEYS if getattr(config.run, key) is None]
+    if missing:
+        raise ConfigError(f"{', '.join(missing)} may not be none (the task's defaults fill them)")
     return config

@@ -1,24 +1,24 @@
 """Go-Explore goal schedules: which kind of goal each chunk of the reset-free stream pursues.
 
 Kinds (ScheduleConfig.kind):
-  "planner"          reset-free PEG: a planner (exploratory) goal every chunk.
-  "back_and_forth"   MoReFree's Back-and-Forth Go-Explore (paper Alg. 2): a "forth" chunk to an evaluation
-                     goal is always followed by a "back" chunk to an initial-state goal sampled with it;
-                     other chunks take planner goals. alpha = 0 is reset-free PEG, alpha = 1 only goes back
-                     and forth.
+  "planner"          reset-free PEG: a freshly optimised planner goal every chunk (paper appendix: reset-free
+                     PEG optimises "the goal distribution every H_G+H_E steps").
+  "back_and_forth"   MoReFree's Back-and-Forth Go-Explore (paper Alg. alg:bfge): each decision draws r; if
+                     r < alpha, a "forth" chunk to an evaluation goal g* and then a "back" chunk to an
+                     initial-state goal g0 sampled with it, continuing from where the forth chunk ended;
+                     otherwise one planner chunk. alpha = 0 is reset-free PEG, alpha = 1 only goes back and
+                     forth. At alpha = 0.2 the share of task chunks is 2 alpha / (1 + alpha) = 1/3.
   "episodic_planner" episodic PEG: one planner goal per hard-reset segment; the segment is one chunk whose
                      go and explore phases are each half the segment (`phase_lengths`).
   "eval_only"        goal-conditioned Dreamer: evaluation goals for the whole stream.
 
-The schedule is two pure, jittable steps so the caller can skip an expensive goal search when the chunk
-does not need one (e.g. `lax.cond(choice.replan, plan_goal, sample_stored_goal)`):
+The schedule is two pure, jittable steps so the caller can skip the goal search when the chunk does not
+pursue a planner goal (`lax.cond(choice.search, plan_goal, no_search)`):
 
-    choice = choose_goal_type(config, state, key)                     # GoalChoice(goal_type, replan)
+    choice = choose_goal_type(config, state, key)                     # GoalChoice(goal_type, search)
     goal, state = commit_goal(config, state, choice, eval_goal, initial_goal, planner_goal)
 
-`next_chunk_goal` puts both steps together with the planner: a search (under lax.cond, only when due) or
-a sample of the stored Gaussian. The fused collection scan (go phase, early switch, explore phase) is added
-at integration.
+`next_chunk_goal` puts both steps together with the planner: a full search on every planner chunk.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from morefree_jax.planner import PlannerState, sample_stored_goal
+from morefree_jax.planner import PlannerState
 
 SCHEDULE_KINDS = ("planner", "back_and_forth", "episodic_planner", "eval_only")
 
@@ -47,20 +47,26 @@ GOAL_TYPE_NAMES = tuple(t.name.lower() for t in GoalType)  # ("planner", "eval",
 
 @dataclasses.dataclass(frozen=True)
 class ScheduleConfig:
-    """kind: one of SCHEDULE_KINDS. alpha: share of chunks spent on task goals (back_and_forth only).
-    goal_update_every: chunks between planner re-optimisations (PEG: 50 episodes, agent.md 4.3)."""
+    """kind: one of SCHEDULE_KINDS. alpha: probability that a back_and_forth decision starts a forth/back
+    pair (paper Alg. alg:bfge, "if r < alpha"); unused by the other kinds."""
 
     kind: str = "back_and_forth"
     alpha: float = 0.2
-    goal_update_every: int = 50
 
     def __post_init__(self):
         if self.kind not in SCHEDULE_KINDS:
             raise ValueError(f"schedule kind must be one of {SCHEDULE_KINDS}, got {self.kind!r}")
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
-        if self.goal_update_every < 1:
-            raise ValueError(f"goal_update_every must be >= 1, got {self.goal_update_every}")
+
+    def task_chunk_share(self) -> float:
+        """Expected share of chunks that pursue task goals: a decision yields 2 task chunks with
+        probability alpha, else 1 planner chunk, so 2 alpha / (1 + alpha) (1/3 at alpha 0.2)."""
+        if self.kind == "eval_only":
+            return 1.0
+        if self.kind != "back_and_forth":
+            return 0.0
+        return 2 * self.alpha / (1 + self.alpha)
 
     @property
     def resets_every_chunk(self) -> bool:
@@ -74,38 +80,22 @@ class ScheduleConfig:
         return total // 2, total - total // 2
 
 
-def pair_start_probability(alpha: float) -> float:
-    """Probability that a free chunk (one not forced to go back) starts a forth/back pair.
-
-    How alpha is read: the paper draws r < alpha once per Back-and-Forth call, and a pair call lasts two
-    chunks, so taken literally the share of forth chunks would be alpha / (1 + alpha) = 1/6 for alpha 0.2.
-    We read alpha as the share of collected chunks spent on task-relevant goals, split evenly between
-    evaluation and initial-state goals (alpha/2 each, 1 - alpha planner), matching the paper's imagination
-    mix (alpha/2, alpha/2, 1 - alpha) and issue 4's "fraction of forth chunks is 0.1" at alpha 0.2.
-    With p the pair probability per free chunk, the forth share is p / (1 + p); setting it to alpha / 2
-    gives p = alpha / (2 - alpha) (= 1/9 at alpha 0.2, 1 at alpha 1: always back and forth).
-    """
-    return alpha / (2.0 - alpha)
-
-
 @struct.dataclass
 class ScheduleState:
     """back_pending: the previous chunk went forth, so this one goes back to `back_goal` (D,).
-    chunks_since_plan: chunks since the last planner re-optimisation (large at start: plan at once).
     type_counts (3,): chunks so far per GoalType; chunk: chunks so far."""
 
     back_pending: jax.Array
     back_goal: jax.Array
-    chunks_since_plan: jax.Array
     type_counts: jax.Array
     chunk: jax.Array
 
 
-def init_schedule(goal_size: int, config: ScheduleConfig) -> ScheduleState:
+def init_schedule(goal_size: int, config: ScheduleConfig | None = None) -> ScheduleState:
+    del config  # the state is the same for every kind
     return ScheduleState(
         back_pending=jnp.zeros((), bool),
         back_goal=jnp.zeros((goal_size,), jnp.float32),
-        chunks_since_plan=jnp.asarray(config.goal_update_every, jnp.int32),
         type_counts=jnp.zeros((len(GoalType),), jnp.int32),
         chunk=jnp.zeros((), jnp.int32),
     )
@@ -113,22 +103,23 @@ def init_schedule(goal_size: int, config: ScheduleConfig) -> ScheduleState:
 
 class GoalChoice(NamedTuple):
     goal_type: jax.Array  # int32 GoalType
-    replan: jax.Array  # bool: a planner goal whose Gaussian is due for re-optimisation
+    search: jax.Array  # bool: a planner chunk, so the goal search runs (every planner chunk)
 
 
 def choose_goal_type(config: ScheduleConfig, state: ScheduleState, key: jax.Array) -> GoalChoice:
-    """The goal type of the next chunk, and whether the planner must re-optimise for it."""
+    """The goal type of the next chunk, and whether the goal search runs for it (planner chunks)."""
     if config.kind == "eval_only":
         return GoalChoice(jnp.asarray(GoalType.EVAL, jnp.int32), jnp.zeros((), bool))
     if config.kind == "back_and_forth":
-        starts_pair = jax.random.uniform(key) < pair_start_probability(config.alpha)
+        # Alg. alg:bfge, read literally: one draw per decision; a pending back chunk is the second half
+        # of the previous decision, so it draws nothing.
+        starts_pair = jax.random.uniform(key) < config.alpha
         goal_type = jnp.where(
             state.back_pending, GoalType.INITIAL, jnp.where(starts_pair, GoalType.EVAL, GoalType.PLANNER)
         ).astype(jnp.int32)
     else:  # "planner" and "episodic_planner"
         goal_type = jnp.asarray(GoalType.PLANNER, jnp.int32)
-    replan = (goal_type == GoalType.PLANNER) & (state.chunks_since_plan >= config.goal_update_every)
-    return GoalChoice(goal_type, replan)
+    return GoalChoice(goal_type, goal_type == GoalType.PLANNER)
 
 
 def commit_goal(
@@ -155,7 +146,6 @@ def commit_goal(
     new_state = ScheduleState(
         back_pending=goes_forth,
         back_goal=jnp.where(goes_forth, initial_goal, state.back_goal),
-        chunks_since_plan=jnp.where(choice.replan, 1, state.chunks_since_plan + 1),
         type_counts=state.type_counts + jax.nn.one_hot(goal_type, len(GoalType), dtype=jnp.int32),
         chunk=state.chunk + 1,
     )
@@ -163,9 +153,9 @@ def commit_goal(
 
 
 def schedule_metrics(choice: GoalChoice, state: ScheduleState) -> dict:
-    """Per-chunk log: goal type used (0 planner, 1 eval, 2 initial), re-planned, running type shares."""
+    """Per-chunk log: goal type used (0 planner, 1 eval, 2 initial), searched, running type shares."""
     shares = state.type_counts / jnp.maximum(state.chunk, 1)
-    metrics = {"goal/type": choice.goal_type, "goal/replanned": choice.replan.astype(jnp.float32)}
+    metrics = {"goal/type": choice.goal_type, "goal/searched": choice.search.astype(jnp.float32)}
     metrics.update({f"goal/share_{name}": shares[t] for t, name in enumerate(GOAL_TYPE_NAMES)})
     return metrics
 
@@ -178,28 +168,29 @@ def next_chunk_goal(
     eval_goal: jax.Array,
     initial_goal: jax.Array,
     search_fn,
-    low: jax.Array,
-    high: jax.Array,
 ):
     """The next chunk's goal (D,) with the planner wired in; jittable (jit at the caller).
 
     search_fn(planner_state, key) -> (goal, planner_state, metrics): a full goal search (e.g. plan_goal from
-    start_search(config, current obs) with the agent's score), run only when the schedule says a
-    re-optimisation is due; otherwise the planner goal is a sample of the stored Gaussian and the metrics
-    are zeros of the same structure. Returns (goal, GoalChoice, schedule_state, planner_state, metrics).
+    start_search(config, current obs) with the agent's score). It runs on every planner chunk (a fresh
+    optimisation each time, paper appendix on reset-free PEG) and is skipped under lax.cond on task chunks,
+    whose planner metrics are zeros of the same structure. planner_state.searches counts the searches.
+    Returns (goal, GoalChoice, schedule_state, planner_state, metrics).
     """
-    key_type, key_search, key_sample = jax.random.split(key, 3)
+    key_type, key_search = jax.random.split(key)
     choice = choose_goal_type(config, schedule_state, key_type)
-    metric_shapes = jax.eval_shape(search_fn, planner_state, key_search)[2]
+    goal_shape, _, metric_shapes = jax.eval_shape(search_fn, planner_state, key_search)
 
     def search(state):
-        return search_fn(state, key_search)
+        goal, new_state, metrics = search_fn(state, key_search)
+        return goal, new_state.replace(searches=state.searches + 1), metrics
 
-    def reuse(state):
+    def no_search(state):
         zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), metric_shapes)
-        return sample_stored_goal(state, low, high, key_sample), state, zeros
+        return jnp.zeros(goal_shape.shape, goal_shape.dtype), state, zeros
 
-    planner_goal, planner_state, planner_metrics = jax.lax.cond(choice.replan, search, reuse, planner_state)
+    planner_goal, planner_state, planner_metrics = jax.lax.cond(choice.search, search, no_search,
+                                                                planner_state)
     goal, schedule_state = commit_goal(config, schedule_state, choice, eval_goal, initial_goal, planner_goal)
     metrics = {**schedule_metrics(choice, schedule_state), **planner_metrics}
     return goal, choice, schedule_state, planner_state, metrics

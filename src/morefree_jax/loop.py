@@ -31,7 +31,7 @@ from morefree_jax import replay as replay_lib
 from morefree_jax.agent import AgentState, EnvSpec, make_agent
 from morefree_jax.checkpoint import RunCheckpointer, check_run_dir_config
 from morefree_jax.collect import StreamState, collect_chunk, collect_config_for, init_stream, prefill_stream
-from morefree_jax.config_run import RESUMABLE_KEYS, Config, ConfigError, config_to_dict
+from morefree_jax.config_run import RESUMABLE_KEYS, TASK_RUN_KEYS, Config, ConfigError, config_to_dict
 from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation
 from morefree_jax.go_explore import GOAL_TYPE_NAMES, ScheduleState, init_schedule
 from morefree_jax.imagination import GoalPools
@@ -78,12 +78,16 @@ class Run:
     def __init__(self, config: Config):
         self.config = config
         run = config.run
+        unresolved = [key for key in TASK_RUN_KEYS if getattr(run, key) is None]
+        if unresolved:
+            raise ConfigError(f"run.{', run.'.join(unresolved)} unset: build the config with resolve_config, "
+                              "which fills the task's defaults")
         self.env = envs_mjx.make(run.env)
         self.agent = make_agent(config.agent, EnvSpec.from_env(self.env))
         self.collect_cfg = collect_config_for(self.env, config.schedule, variant(run.agent).explore,
                                               run.subgoal_threshold, run.hard_reset_every)
         self.chunk_len = self.collect_cfg.chunk_len
-        self.updates_per_chunk = max(1, round(self.chunk_len / run.resolved_train_every))
+        self.updates_per_chunk = max(1, round(self.chunk_len / run.train_every))
         self.run_dir = run.resolved_run_dir
         self.config_dict = config_to_dict(config)
         if run.prefill < config.agent.replay.length:
@@ -123,7 +127,7 @@ class Run:
             replay=replay_lib.init_replay(config.agent.replay, goal_size, env.action_size),
             stream=init_stream(env, self.agent, key_stream),
             planner=start_search(config.planner, jnp.zeros(goal_size)),
-            schedule=init_schedule(goal_size, config.schedule),
+            schedule=init_schedule(goal_size),
             go_counts=jnp.zeros((2, 3), jnp.float32),
             key=key_run,
         )
@@ -138,13 +142,16 @@ class Run:
     def _collect(self, state: RunState):
         key, key_chunk = jax.random.split(state.key)
         config = self.config
+        task_box = tuple(jnp.asarray(b, jnp.float32) for b in self.env.observation_bounds)
+        goal_bounds = replay_lib.visited_range(state.replay, *task_box)  # candidates inside visited states
         stream, schedule, planner, transitions, metrics = collect_chunk(
             self.env, self.agent, self.collect_cfg, config.planner, config.schedule, state.agent,
-            state.stream, state.schedule, state.planner, key_chunk)
+            state.stream, state.schedule, state.planner, key_chunk, goal_bounds)
         goal_type = jax.nn.one_hot(metrics["goal/type"], 3)
         go_counts = state.go_counts + jnp.stack([goal_type, goal_type * metrics["go/reached"]])
         rates = go_counts[1] / jnp.maximum(go_counts[0], 1.0)
         metrics.update({f"go/reach_rate_{name}": rates[i] for i, name in enumerate(GOAL_TYPE_NAMES)})
+        metrics["planner/searches"] = planner.searches.astype(jnp.float32)
         state = state.replace(replay=replay_lib.add(state.replay, *transitions), stream=stream,
                               schedule=schedule, planner=planner, go_counts=go_counts, key=key)
         return state, metrics

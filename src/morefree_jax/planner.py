@@ -7,7 +7,6 @@ goal-conditioned policy in the world model from the current latent, sum the expl
 
     state = start_search(config, init_mean)                        # N(init_mean, init_std)
     goal, state, metrics = plan_goal(score_fn, state, low, high, key, config)
-    goal = sample_stored_goal(state, low, high, key)               # between re-optimisations
 
 Everything is pure and jittable. Build `score_fn` INSIDE the jitted function from traced arguments, so the
 agent's parameters are inputs rather than baked-in constants and one compilation serves every call:
@@ -55,7 +54,6 @@ class PlannerConfig:
     init_std: float = 1.0
     min_std: float = 0.0
     horizon: int = 50
-    goal_update_every: int = 50
     use_last_steps: int | None = 10
     init_mean: str = "current"
     clip_final_goal: bool = True
@@ -65,8 +63,8 @@ class PlannerConfig:
             raise ValueError(f"planner.method must be one of {METHODS}, got {self.method!r}")
         if self.init_mean not in INIT_MEANS:
             raise ValueError(f"planner.init_mean must be one of {INIT_MEANS}, got {self.init_mean!r}")
-        if self.num_candidates < 2 or self.iterations < 1 or self.horizon < 1 or self.goal_update_every < 1:
-            raise ValueError("planner: num_candidates >= 2, iterations, horizon, goal_update_every >= 1")
+        if self.num_candidates < 2 or self.iterations < 1 or self.horizon < 1:
+            raise ValueError("planner: num_candidates >= 2, iterations >= 1 and horizon >= 1")
         if not 0.0 < self.cem_elite_fraction <= 1.0:
             raise ValueError(f"planner.cem_elite_fraction must be in (0, 1], got {self.cem_elite_fraction}")
         if self.init_std <= 0 or self.min_std < 0 or self.mppi_temperature <= 0:
@@ -79,54 +77,25 @@ class PlannerConfig:
         return max(1, int(round(self.num_candidates * self.cem_elite_fraction)))
 
 
-# Per-task defaults. Sources: agent.md 4.1 (PEG configs.yaml planner) for the PEG task each MoReFree task is
-# closest to; horizon = H_G = half the evaluation episode length (the go-phase length, as PEG's horizon
-# equals H_G for point maze and ant maze); goal_update_every 50 (PEG, counted in chunks here, agent.md 5.4).
-PLANNER_DEFAULTS: dict[str, dict] = {
-    # PEG point maze: shooting CEM, 500, 5 iters, elite 0.2, std_scale 4, init candidate = start,
-    # final_step_cost False. IBC PointUMaze eval episode 100 -> horizon 50.
-    "point_umaze": dict(method="cem", num_candidates=500, iterations=5, cem_elite_fraction=0.2,
-                        init_std=4.0, horizon=50, use_last_steps=None, init_mean="initial_state"),
-    # PEG ant maze: MPPI gamma 2, 500, 5 iters, horizon 150, std_scale 10, init candidate, last 10 steps.
-    "ant": dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=2.0, init_std=10.0,
-                horizon=150, use_last_steps=10, init_mean="initial_state"),
-    # Fetch tasks: closest PEG task is the Fetch 3-block stack (MPPI gamma 10, std_scale 0.5, last 10);
-    # PEG used 2000 candidates there, we keep 500 for this CPU (choice). Eval episode 50 -> horizon 25.
-    **{name: dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=10.0, init_std=0.5,
-                  horizon=25, use_last_steps=10, init_mean="current")
-       for name in ("push", "pick_place", "push_hard", "pick_place_hard")},
-    # No PEG counterpart: PEG's default MPPI (gamma 10, last 10). std_scale is a choice matched to the
-    # coordinate range of each task (tabletop mug/gripper xy within +-2.5; sawyer arm/door in ~0.5 m).
-    "tabletop": dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=10.0, init_std=1.0,
-                     horizon=100, use_last_steps=10, init_mean="current"),
-    "sawyer_door": dict(method="mppi", num_candidates=500, iterations=5, mppi_temperature=10.0,
-                        init_std=0.5, horizon=150, use_last_steps=10, init_mean="current"),
-}
-
-
-def planner_config_for(task: str, **overrides) -> PlannerConfig:
-    """The per-task default PlannerConfig (PLANNER_DEFAULTS), with keyword overrides on top."""
-    return PlannerConfig(**{**PLANNER_DEFAULTS.get(task, {}), **overrides})
-
-
 @struct.dataclass
 class PlannerState:
-    """The search's diagonal Gaussian in goal space; between re-optimisations goals are drawn from it.
+    """The search's diagonal Gaussian in goal space after the last search.
 
     mean, std: (D,). score: mean score of the last iteration of the last search (for logging).
+    searches: goal searches run so far (next_chunk_goal counts them).
     """
 
     mean: jax.Array
     std: jax.Array
     score: jax.Array
+    searches: jax.Array = struct.field(default_factory=lambda: jnp.zeros((), jnp.int32))
 
 
 def start_search(config: PlannerConfig, init_mean: jax.Array) -> PlannerState:
     """The Gaussian a re-optimisation starts from: N(init_mean, init_std) in every dim (agent.md 4.2.2)."""
     init_mean = jnp.asarray(init_mean, jnp.float32)
-    return PlannerState(
-        mean=init_mean, std=jnp.full_like(init_mean, config.init_std), score=jnp.zeros((), jnp.float32)
-    )
+    return PlannerState(mean=init_mean, std=jnp.full_like(init_mean, config.init_std),
+                        score=jnp.zeros((), jnp.float32), searches=jnp.zeros((), jnp.int32))
 
 
 def sample_candidates(state: PlannerState, low, high, key: jax.Array, num: int) -> jax.Array:
@@ -136,7 +105,7 @@ def sample_candidates(state: PlannerState, low, high, key: jax.Array, num: int) 
 
 
 def sample_stored_goal(state: PlannerState, low, high, key: jax.Array, clip: bool = True) -> jax.Array:
-    """One goal (D,) from the stored Gaussian (no re-optimisation), clipped to [low, high] when `clip`."""
+    """One goal (D,) from the search's Gaussian, clipped to [low, high] when `clip`."""
     goal = state.mean + state.std * jax.random.normal(key, state.mean.shape, state.mean.dtype)
     return jnp.clip(goal, low, high) if clip else goal
 
@@ -178,7 +147,7 @@ def plan_goal(
         mean, std = refit(candidates, scores, config)
         finite = jnp.isfinite(scores)
         score_mean = jnp.sum(jnp.where(finite, scores, 0.0)) / jnp.maximum(jnp.sum(finite), 1)
-        new_state = PlannerState(mean=mean, std=jnp.maximum(std, config.min_std), score=score_mean)
+        new_state = state.replace(mean=mean, std=jnp.maximum(std, config.min_std), score=score_mean)
         record = dict(score_mean=score_mean, score_max=jnp.max(jnp.where(finite, scores, -jnp.inf)),
                       nonfinite=jnp.mean(~finite))
         return new_state, record

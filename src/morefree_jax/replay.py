@@ -5,6 +5,11 @@ Transition t stores obs_t, the action that led to it (zeros after a hard reset, 
 transitions uniformly among the valid ones: all T still in the buffer and no hard reset after the window's
 first step (a window may start at a reset). `is_first` is True at each window's first step; since windows
 never cross a reset, that is also where the hard resets are. add/sample are pure and jittable.
+
+The buffer also keeps the per-dimension range of every observation ever added (`visited_range`): the
+goal search draws its candidates inside it (collect.py), so they are states the stream has been in.
+The range never shrinks when old transitions are overwritten (budgets up to 8e5 steps fit the default
+capacity of 1e6, so nothing is overwritten in the paper's runs).
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ class ReplayState:
     action: jax.Array  # (C, A)
     reset: jax.Array  # (C,) bool
     count: jax.Array  # transitions added so far (int32; the stream position of the next write)
+    obs_low: jax.Array  # (O,) smallest value of each observation entry added so far (+inf when empty)
+    obs_high: jax.Array  # (O,) largest (-inf when empty)
 
 
 def replay_bytes(capacity: int, obs_size: int, action_size: int) -> int:
@@ -56,6 +63,8 @@ def init_replay(cfg: ReplayConfig, obs_size: int, action_size: int) -> ReplaySta
         action=jnp.zeros((cfg.capacity, action_size), jnp.float32),
         reset=jnp.zeros((cfg.capacity,), bool),
         count=jnp.zeros((), jnp.int32),
+        obs_low=jnp.full((obs_size,), jnp.inf, jnp.float32),
+        obs_high=jnp.full((obs_size,), -jnp.inf, jnp.float32),
     )
 
 
@@ -68,7 +77,17 @@ def add(state: ReplayState, obs: jax.Array, action: jax.Array, reset: jax.Array)
         action=state.action.at[index].set(action),
         reset=state.reset.at[index].set(reset),
         count=state.count + obs.shape[0],
+        obs_low=jnp.minimum(state.obs_low, jnp.min(obs, axis=0)),
+        obs_high=jnp.maximum(state.obs_high, jnp.max(obs, axis=0)),
     )
+
+
+def visited_range(state: ReplayState, low: jax.Array, high: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The per-dimension range of the observations added so far, clipped to the box [low, high] (O,);
+    the box itself while the buffer is empty."""
+    empty = state.count == 0
+    return (jnp.where(empty, low, jnp.clip(state.obs_low, low, high)),
+            jnp.where(empty, high, jnp.clip(state.obs_high, low, high)))
 
 
 def valid_starts(state: ReplayState, length: int) -> jax.Array:
