@@ -15,10 +15,14 @@ ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocato
 
 .PHONY: install test test-slow lint bench clean train evaluate
 
+# CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
+CUDA ?=
+comma := ,
 install:
+	@case "$(CUDA)" in ""|12|13) ;; *) echo "error: CUDA=$(CUDA) is not supported; use CUDA=12, CUDA=13 or leave it empty (CPU)"; exit 2;; esac
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev$(if $(CUDA),$(comma)cuda$(CUDA))]"
 
 test:
 	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile

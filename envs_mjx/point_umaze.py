@@ -1,22 +1,35 @@
-"""PointUMaze (IBC's goal-conditioned point in a U-maze), reset-free.
+"""PointUMaze (IBC's goal-conditioned point in a U-maze), reset-free, with the original's physics.
 
-The original (mujoco-maze's point, used by IBC) moves the point kinematically: each action turns the
-heading by a1 in [-0.25, 0.25] rad and then displaces the point by a0 in [-1, 1] along the new heading,
-written straight into qpos. A manual collision rule keeps it out of the walls: the segment from the old
-to the new position is tested against the wall faces inflated by a radius of 0.4; on a crossing the point
-goes to the hit point plus 0.8 times the mirrored remainder, and if that path also crosses a wall it stays
-where it was. We reproduce this exactly in JAX (one vectorised segment test against every exposed face).
+Each step does what the original (mujoco-maze's point, used by IBC) does, in the same order:
+  1. turn the heading by a1 in [-0.25, 0.25] rad (wrapped once into [-pi, pi]) and move the point by a0 in
+     [-1, 1] along the new heading, written straight into qpos (the action never reaches `ctrl`; the
+     MJCF's motors only carry the action box);
+  2. clip the joint velocities to +-10;
+  3. one MuJoCo physics step (RK4, 0.02 s) in MJX: the sphere (r 0.5) and the arrow box touch the wall
+     blocks before the manual rule below fires, so contacts turn the kinematic moves into velocities of
+     several units per second that carry the point on for many steps;
+  4. the original's manual collision rule on the segment from the position before step 1 to the one after
+     step 3: on crossing a wall face inflated by 0.4 the point goes to the hit point plus 0.8 times the
+     mirrored remainder, and if that path also crosses a wall it stays where it was. Only x, y change;
+     the velocities stay as the physics step left them.
 
-The MuJoCo physics step of the original only integrates the joint velocities, which nothing ever sets
-after the initial N(0, 0.1) noise; floor friction then damps them. Rather than running a physics step per
-action (milliseconds on CPU), we integrate qpos += qvel * dt and decay qvel by per-step factors fitted to
-C MuJoCo on this MJCF (x, y: 0.96; heading: 0.9996). This affects positions by about 0.01 over an episode.
+The original's floor "friction" is a floating-point accident that we inherit rather than model: the body
+has no z joint and the sphere rests exactly on the floor, so the floor contact exists only when rounding
+puts the sphere's centre a hair below z = 0.5, which depends on the last bits of cos^2 + sin^2 of the
+heading in each RK4 stage. It then acts as a stiff velocity damper, otherwise not at all. MJX (float32)
+and C MuJoCo (float64) toss this coin differently for the same state but with the same odds, so
+trajectories agree only in distribution once the point moves (README: PointUMaze, and
+tests/test_point_umaze_physics.py, for the measured agreement).
 
 Deviations from the original, on purpose:
   - the observation is 6-D (x, y, heading, their velocities): the original's 7th entry, 0.001 x steps since
     reset, has no meaning in a reset-free stream and would make goals unreachable in that entry;
-  - contact forces between the point and the walls (the sphere of radius 0.5 may overlap an inflated
-    face by 0.1) are not simulated; the manual collision rule alone keeps the point in the maze.
+  - the original calls mj_forward after writing the corrected position; we skip it because the observation
+    reads only qpos and qvel, so the derived fields of `pipeline_state` (xpos, contacts) are those of the
+    physics step, before the manual rule (`mj_data_from` recomputes them for rendering).
+A difference we did not choose: MJX's box-box routine reports contact points on a face rather than midway
+between the surfaces (and in some deep poses other points than C's), which changes the friction torque
+when the arrow sits deep in a wall block (README: PointUMaze).
 """
 
 from __future__ import annotations
@@ -27,7 +40,7 @@ import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
 
-from envs_mjx.base import ResetFreeEnv, clip_action, learner_defaults
+from envs_mjx.base import ResetFreeEnv, clip_action, learner_defaults, physics_substeps
 
 LAYOUT = ("11111", "10001", "11101", "10001", "11111")  # 1 = wall block; (row i, col j)
 CELL = 4.0
@@ -35,7 +48,6 @@ COLLISION_RADIUS = 0.4
 RESTITUTION = 0.8
 MAX_TURN = 0.25
 VELOCITY_LIMIT = 10.0
-VELOCITY_DECAY = np.array([0.96, 0.96, 0.9996])  # fitted to C MuJoCo floor friction on this MJCF
 START_XY = np.array([0.0, 0.0])
 GOAL_XY = np.array([0.0, 8.0])
 
@@ -101,7 +113,10 @@ def collide_with_walls(faces: jax.Array, old_xy: jax.Array, new_xy: jax.Array) -
 
 
 def wrap_angle(angle: jax.Array) -> jax.Array:
-    return (angle + jnp.pi) % (2 * jnp.pi) - jnp.pi
+    """One shift by 2 pi into [-pi, pi], as the original does: the heading it is applied to is within
+    0.25 rad plus one physics step's turn of [-pi, pi], so once is enough."""
+    shift = jnp.where(angle > jnp.pi, -2 * jnp.pi, jnp.where(angle < -jnp.pi, 2 * jnp.pi, 0.0))
+    return angle + shift
 
 
 class PointUMaze(ResetFreeEnv):
@@ -130,13 +145,15 @@ class PointUMaze(ResetFreeEnv):
     def step(self, state: State, action: jax.Array) -> State:
         data = state.pipeline_state
         action = clip_action(action)
+        old_xy = data.qpos[:2]
         heading = wrap_angle(data.qpos[2] + MAX_TURN * action[1])
-        forward = action[0] * jnp.array([jnp.cos(heading), jnp.sin(heading)])
+        moved_xy = old_xy + action[0] * jnp.stack([jnp.cos(heading), jnp.sin(heading)])
         qvel = jnp.clip(data.qvel, -VELOCITY_LIMIT, VELOCITY_LIMIT)
-        drift = qvel * self.dt  # what the original's physics step integrates
-        new_xy = collide_with_walls(self.faces, data.qpos[:2], data.qpos[:2] + forward + drift[:2])
-        qpos = jnp.concatenate([new_xy, (heading + drift[2])[None]])
-        data = data.replace(qpos=qpos, qvel=qvel * VELOCITY_DECAY)
+        data = data.replace(qpos=jnp.concatenate([moved_xy, heading[None]]), qvel=qvel)
+        data = physics_substeps(self.mjx_model, data, self.frames_per_step)
+        # The rule tests the whole move, kinematic and physical, from where the step started.
+        xy = collide_with_walls(self.faces, old_xy, data.qpos[:2])
+        data = data.replace(qpos=data.qpos.at[:2].set(xy))
         obs = self._obs(data)
         return state.replace(pipeline_state=data, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()))
 
@@ -146,9 +163,10 @@ class PointUMaze(ResetFreeEnv):
         negatives, prefill 50 x 50 = 2500 steps; train ratio 2 (paper); budget 2e5 steps (the paper: one
         hard reset, at the start, at one per 2e5 steps). Planner: PEG's shooting CEM (500 candidates, 5
         iterations, elite 0.2, std_scale 4, initial-state candidate, all steps scored), horizon 50 = H_G.
-        Deviation: subgoal threshold 1 step instead of PEG's 5: the point moves at most 1 unit per step
-        and succeeds within 0.6, and with PEG's 5 the go phase ended after one step in most chunks of our
-        first runs (far goals sit near 0.3 x 15 = 4.7 steps of learned distance without negatives)."""
+        Deviation: subgoal threshold 1 step instead of PEG's 5: the point's action moves it at most 1 unit
+        per step (physics adds up to ~0.3) and success is within 0.6, and with PEG's 5 the go phase ended
+        after one step in most chunks of our first runs (far goals sit near 0.3 x 15 = 4.7 steps of learned
+        distance without negatives)."""
         return {
             "run.total_steps": 200_000, "run.prefill": 2_500, "run.train_every": 2,
             "run.subgoal_threshold": 1.0,
@@ -175,6 +193,12 @@ class PointUMaze(ResetFreeEnv):
 
     @property
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        high = np.array([10.0, 10.0, np.pi, 1.0, 1.0, 1.0], np.float32)
-        low = np.array([-2.0, -2.0, -np.pi, -1.0, -1.0, -1.0], np.float32)
+        # xy: the free cells +- half a cell (the original's box). Heading: the wrap comes before the physics
+        # step, which can turn it by up to |qvel_heading| x 0.02 more. Velocities: 50k-step MJX rollouts
+        # (2026-11-29), uniform random actions / wall-seeking (full forward at the nearest wall, 20% random):
+        # heading in [-3.32, 3.34] / [-2.07, 0.64]; qvel x [-11.8, 15.7] / [-13.6, 10.6], y [-13.9, 16.6] /
+        # [-8.9, 17.8], heading [-25.4, 28.0] / [-19.0, 19.3] (99.9% quantiles of |qvel| 8-14 in x, y and
+        # 16-18 in heading); C MuJoCo, 20k random steps: max |qvel| 13.9, 14.1, 28.7.
+        high = np.array([10.0, 10.0, 3.5, 18.0, 18.0, 30.0], np.float32)
+        low = np.array([-2.0, -2.0, -3.5, -18.0, -18.0, -30.0], np.float32)
         return low, high

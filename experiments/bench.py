@@ -70,6 +70,9 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
+    from morefree_jax import runtime
+
+    runtime.configure()  # before any JAX computation: the tuned runtime the runs use
     args = parse_args(argv)
     rows: list[dict] = []
     for section in args.sections:

@@ -21,7 +21,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from morefree_jax import RUNTIME_SETTINGS, runtime
+from morefree_jax import runtime
 from morefree_jax.agent import MODE_GOAL, EnvSpec, acting_state, make_agent
 from morefree_jax.config import preset
 from morefree_jax.imagination import GoalPools
@@ -180,7 +180,7 @@ def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: 
     else:
         rows = []
     peak = matmul_peak()
-    allocator = RUNTIME_SETTINGS["allocator"]
+    allocator = runtime.settings()["allocator"]
     rows.append(_row("matmul_peak_2048", peak / 1e9, "GFLOP/s",
                      f"f32 2048^3 under jit, runtime {mode}, allocator {allocator}"))
     for name in presets:
@@ -190,6 +190,7 @@ def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: 
 
 
 def main():
+    runtime.configure()  # before any JAX computation
     parser = argparse.ArgumentParser()
     parser.add_argument("--presets", default="paper,cpu")
     parser.add_argument("--reps", type=int, default=3)

@@ -15,6 +15,12 @@ Rows {"section", "name", "value", "unit", "note"}:
                               (rf_peg: every chunk), collect without one (task goals), train (chunk_len /
                               train_every updates); the search's share of a morefree chunk (a search on
                               the 2/3 of chunks that pursue planner goals) and of an rf_peg chunk.
+  goal_box/*                  where the goal search's candidates lie: the share of all candidates of every
+                              iteration (rf_peg searches on point_umaze, cpu preset) inside the range of
+                              observations the replay has visited, and inside its 1-99% quantile box, with
+                              the task's observation bounds as the search box (before) and with the
+                              visited range (after; what the runs use). `goal_box_rows(run_dir)` measures
+                              on a run's newest checkpoint, default a fresh run after its prefill.
 quick=True: the point_umaze collection row only (about 20 s).
 """
 
@@ -26,6 +32,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import envs_mjx
 from morefree_jax.agent import EnvSpec, make_agent
@@ -172,6 +179,63 @@ def chunk_rows(chunks: int = 3) -> list[dict]:
     ]
 
 
+def _candidate_recorder(agent, store: list):
+    """The agent with imagine_to_goals wrapped to hand every batch of candidates to `store` (host)."""
+    def imagine_to_goals(agent_state, start, goals, horizon, key):
+        jax.debug.callback(lambda g: store.append(np.asarray(g)), goals)
+        return agent.imagine_to_goals(agent_state, start, goals, horizon, key)
+
+    return agent._replace(imagine_to_goals=imagine_to_goals)
+
+
+def goal_box_rows(run_dir: str | None = None, searches: int = 10) -> list[dict]:
+    """Shares of goal-search candidates inside the replay's visited range, with the task box vs the
+    visited range as the search box (rf_peg's search from the stream's current state)."""
+    from morefree_jax import replay as replay_lib
+    from morefree_jax.collect import choose_goal
+    from morefree_jax.loop import prepare_run, restore_run
+
+    if run_dir is None:
+        config = resolve_config(["env=point_umaze", "agent=rf_peg", "preset=cpu", "run_dir=/nonexistent"],
+                                envs_mjx.ALL_ENVS)
+        run = prepare_run(config)
+        state = run.prefill(run.init(jax.random.PRNGKey(0)))
+        where = f"after the {config.run.prefill}-step prefill"
+    else:
+        run, state, step = restore_run(run_dir)
+        where = f"{run_dir} at step {step}"
+    env, replay = run.env, state.replay
+    observations = np.asarray(replay.obs[:min(int(replay.count), replay.obs.shape[0])])
+    visited = (observations.min(axis=0), observations.max(axis=0))
+    quantiles = (np.quantile(observations, 0.01, axis=0), np.quantile(observations, 0.99, axis=0))
+    task_box = tuple(jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
+    boxes = {"task_box": task_box, "visited_range": replay_lib.visited_range(replay, *task_box)}
+    rows = []
+    for name, box in boxes.items():
+        store: list = []
+        agent = _candidate_recorder(run.agent, store)
+        schedule_cfg = ScheduleConfig(kind="planner")
+        search = jax.jit(lambda agent_state, stream, key, box=box, agent=agent, schedule_cfg=schedule_cfg:
+                         choose_goal(env, agent, run.config.planner, schedule_cfg, agent_state, stream,
+                                     state.schedule, state.planner, key, box)[0])
+        for index in range(searches):
+            jax.block_until_ready(search(state.agent, state.stream, jax.random.PRNGKey(index)))
+        candidates = np.concatenate(store)
+
+        def share(low, high, dims=slice(None), candidates=candidates):
+            picked = candidates[:, dims]
+            return 100 * np.mean(np.all((picked >= low[dims]) & (picked <= high[dims]), axis=-1))
+
+        note = f"{len(candidates)} candidates of {searches} searches, {where}"
+        rows += [_row(f"goal_box/{name}_in_visited_range", share(*visited), "%", note),
+                 _row(f"goal_box/{name}_in_quantile_box", share(*quantiles), "%", "1-99% of the replay")]
+        for dim in range(env.observation_size):
+            inside = share(*quantiles, slice(dim, dim + 1))
+            rows.append(_row(f"goal_box/{name}_dim{dim}_in_quantile_box", inside, "%",
+                             f"replay 1-99%: [{quantiles[0][dim]:.3g}, {quantiles[1][dim]:.3g}]"))
+    return rows
+
+
 def run(quick: bool = False, show=None) -> list[dict]:
     """All rows; `show(row)` is called as each row is measured (the CLI prints them)."""
     if quick:
@@ -193,6 +257,9 @@ def run(quick: bool = False, show=None) -> list[dict]:
 
 
 if __name__ == "__main__":
+    from morefree_jax import runtime
+
+    runtime.configure()  # before any JAX computation
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
     run(parser.parse_args().quick,

@@ -37,6 +37,9 @@ def parse(argv: list[str]) -> dict:
 
 
 def main(argv: list[str]) -> int:
+    from morefree_jax import runtime
+
+    runtime.configure()  # before any JAX computation
     from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
     from morefree_jax.config_run import ConfigError
 

@@ -13,18 +13,14 @@ from __future__ import annotations
 import os
 import sys
 
-if "preset=paper" in sys.argv[1:]:  # before morefree_jax is imported (see morefree_jax.runtime)
-    os.environ.setdefault("MOREFREE_JAX_RUNTIME", "large")
-
-import envs_mjx  # noqa: E402
-from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError  # noqa: E402
-from morefree_jax.config_run import ConfigError, resolve_config  # noqa: E402
+import envs_mjx
+from morefree_jax import runtime
+from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
+from morefree_jax.config_run import ConfigError, resolve_config
 
 
 def _runtime_line() -> str:
-    import morefree_jax
-
-    settings = morefree_jax.RUNTIME_SETTINGS
+    settings = runtime.settings()
     line = f"runtime {settings['mode']}, allocator {settings['allocator']}"
     if settings["allocator"] != "jemalloc":
         line += " (with libjemalloc2 installed, `make train` preloads jemalloc: ~15% faster updates)"
@@ -35,6 +31,10 @@ def main(argv: list[str]) -> int:
     if any(arg in ("-h", "--help") for arg in argv):
         print(__doc__)
         return 0
+    # Before any JAX computation (XLA flags, allocator settings); paper-size learners use the `large` mode
+    # unless MOREFREE_JAX_RUNTIME says otherwise (see morefree_jax.runtime).
+    paper = "preset=paper" in argv and runtime.MODE_VARIABLE not in os.environ
+    runtime.configure("large" if paper else None)
     try:
         config = resolve_config(argv, envs_mjx.ALL_ENVS)
         from morefree_jax.loop import prepare_run  # imports jax: after the cheap checks

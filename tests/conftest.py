@@ -8,6 +8,13 @@ import jax
 import pytest
 
 import envs_mjx
+from morefree_jax import runtime
+
+# The tuned CPU runtime the CLIs use (importing the library sets nothing); before any JAX computation.
+runtime.configure()
+# No persistent compilation cache in the test process, even if JAX_COMPILATION_CACHE_DIR is set: see
+# tests/loop_helpers.py (XLA aborted loading a cached collect program here).
+jax.config.update("jax_enable_compilation_cache", False)
 
 
 @functools.cache

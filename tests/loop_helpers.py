@@ -10,19 +10,17 @@ import re
 import tempfile
 
 import jax
-from jax.experimental.compilation_cache import compilation_cache
 
 import envs_mjx
 from morefree_jax.config_run import resolve_config
 
-# A persistent compilation cache shared with the CLI subprocesses of test_loop, so that they load the
-# executables this process compiled (identical HLO -> identical executable) instead of compiling again.
+# A persistent compilation cache for the CLI subprocesses of test_loop: the first compiles, the later ones
+# load its executables. The test process itself does not use it (conftest turns it off): since PointUMaze
+# steps MJX physics, XLA aborted deserialising a run's collect program in a process that had compiled
+# other runs' programs before (reproduced in tests/test_loop.py's variant runs; a fresh process loads the
+# same file fine).
 COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path(tempfile.gettempdir()) / f"morefree_jax_test_cache_{os.getuid()}")
-if not jax.config.jax_compilation_cache_dir:
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-    compilation_cache.set_cache_dir(COMPILATION_CACHE)
-    compilation_cache.reset_cache()
 
 CHUNK = 100  # point_umaze: H_G + H_E = its 100-step evaluation episode
 
@@ -39,10 +37,14 @@ def debug_config(agent: str, *extra: str):
     return resolve_config([*DEBUG_ARGS, f"agent={agent}", *extra], envs_mjx.ALL_ENVS)
 
 
-@functools.cache
+@functools.lru_cache(maxsize=1)
 def _debug_run(agent: str):
+    """One variant's Run at a time: switching variants drops the previous Run and JAX's executables.
+    With the MJX physics in the collect program, XLA aborted compiling or loading a variant's collect in a
+    process that held the executables of five other variants (tests/test_loop.py, 2026-11-29)."""
     from morefree_jax.loop import prepare_run
 
+    jax.clear_caches()
     return prepare_run(debug_config(agent, "steps=200", "run_dir=/nonexistent"))
 
 

@@ -1,4 +1,5 @@
-"""Process settings of morefree_jax.runtime, each checked in a fresh interpreter (they act at start-up)."""
+"""Process settings of morefree_jax.runtime, each checked in a fresh interpreter (they act at start-up), and
+the promise that importing the library changes none of them."""
 
 import json
 import os
@@ -13,7 +14,8 @@ from morefree_jax import runtime
 # XLA does with an execution's temporaries (the thread is off glibc's main arena).
 FAULTS = """
 import ctypes, json, resource, threading
-import morefree_jax
+from morefree_jax import runtime
+settings = runtime.configure()
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype = ctypes.c_void_p
 libc.free.argtypes = [ctypes.c_void_p]
@@ -30,7 +32,7 @@ in_worker()
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 in_worker()
 print(json.dumps({"faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before,
-                  "settings": morefree_jax.RUNTIME_SETTINGS}))
+                  "settings": settings}))
 """
 
 
@@ -57,7 +59,8 @@ def test_large_mode_reuses_freed_memory_instead_of_faulting_it_in_again():
 
 
 def test_modes_set_their_xla_flags():
-    code = "import json, os, morefree_jax; print(json.dumps(os.environ.get('XLA_FLAGS', '')))"
+    code = ("import json, os; from morefree_jax import runtime; runtime.configure()\n"
+            "print(json.dumps(os.environ.get('XLA_FLAGS', '')))")
     flags = {mode: _last_json(_python(code, mode)) for mode in ("large", "standard", "default")}
     assert runtime.YNN_OFF in flags["large"] and runtime.YNN_OFF not in flags["standard"]
     assert flags["default"] == ""
@@ -67,12 +70,12 @@ def test_flags_are_not_touched_once_jax_has_started():
     code = ("import os, warnings, jax; jax.numpy.ones(1).block_until_ready()\n"
             "with warnings.catch_warnings(record=True) as caught:\n"
             "    warnings.simplefilter('always')\n"
-            "    import morefree_jax\n"
+            "    from morefree_jax import runtime; runtime.configure()\n"
             "print(os.environ.get('XLA_FLAGS', ''), '|', [str(w.message) for w in caught])")
     out = _python(code, "large").stdout
     flags, _, warned = out.rpartition("|")
     assert runtime.YNN_OFF not in flags
-    assert "import morefree_jax first" in warned
+    assert "call it before any JAX computation" in warned
 
 
 def test_unknown_mode_is_a_clear_error(monkeypatch):
@@ -83,7 +86,7 @@ def test_unknown_mode_is_a_clear_error(monkeypatch):
 
 def test_unknown_mode_argument_is_a_clear_error():
     with pytest.raises(ValueError, match="standard, large, default"):
-        runtime.tune_cpu_runtime("fast")
+        runtime.configure("fast")
 
 
 def test_allocator_env_preloads_jemalloc_once_and_only_where_wanted(monkeypatch):
@@ -99,8 +102,31 @@ def test_allocator_env_preloads_jemalloc_once_and_only_where_wanted(monkeypatch)
 
 @pytest.mark.skipif(runtime.find_jemalloc() is None, reason="libjemalloc2 is not installed on this machine")
 def test_a_process_started_with_allocator_env_runs_on_jemalloc_and_leaves_glibc_alone():
-    code = "import json, morefree_jax; print(json.dumps(morefree_jax.RUNTIME_SETTINGS))"
+    code = "import json; from morefree_jax import runtime; print(json.dumps(runtime.configure()))"
     on_jemalloc = _last_json(_python(code, "large", runtime.allocator_env({})))
     assert on_jemalloc["allocator"] == "jemalloc" and not on_jemalloc["keep_freed_memory"]
     on_glibc = _last_json(_python(code, "large"))
     assert on_glibc["allocator"] == "glibc" and on_glibc["keep_freed_memory"]
+
+
+IMPORT_EVERYTHING = """
+import importlib, json, os, pkgutil, sys
+before = dict(os.environ)
+import morefree_jax, envs_mjx
+names = []
+for package in (morefree_jax, envs_mjx):
+    for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+        importlib.import_module(info.name)
+        names.append(info.name)
+from morefree_jax import runtime
+changed = {k: v for k, v in os.environ.items() if before.get(k) != v}
+removed = sorted(set(before) - set(os.environ))
+print(json.dumps({"modules": names, "changed": changed, "removed": removed, "settings": runtime.settings()}))
+"""
+
+
+def test_importing_every_module_changes_no_process_state():
+    done = _last_json(_python(IMPORT_EVERYTHING, "large", {"XLA_FLAGS": "--xla_cpu_use_thunk_runtime=true"}))
+    assert {"morefree_jax.loop", "morefree_jax.agent", "envs_mjx.point_umaze"} <= set(done["modules"])
+    assert done["changed"] == {} and done["removed"] == [], done  # XLA_FLAGS, MALLOC_*, ... untouched
+    assert done["settings"]["mode"] == "unconfigured"  # no XLA flag added, no mallopt called

@@ -28,7 +28,7 @@ from morefree_jax.networks import (
     NetState,
     TruncNormal,
     actor_distribution,
-    apply_gradients,
+    gradient_update,
     init_net_state,
     make_optimizer,
 )
@@ -168,14 +168,11 @@ def actor_critic_update(ac: ActorCritic, actor: NetState, critic: NetState, upda
 
     -> (actor, critic, Imagined, metrics). `updates` counts previous updates (copy when divisible).
     """
-    actor_grad = jax.value_and_grad(
-        lambda p: actor_loss(ac, p, critic.target, rssm, rssm_params, reward_fn, start, context, key),
-        has_aux=True)
-    (_, (imagined, actor_metrics)), grads = actor_grad(actor.params)
-    actor, actor_norm = apply_gradients(actor, grads, ac.actor_opt)
-    critic_grad = jax.value_and_grad(lambda p: critic_loss(ac, p, imagined, context), has_aux=True)
-    (_, critic_metrics), grads = critic_grad(critic.params)
-    critic, critic_norm = apply_gradients(critic, grads, ac.critic_opt)
+    actor, (imagined, actor_metrics), actor_norm = gradient_update(
+        actor, lambda p: actor_loss(ac, p, critic.target, rssm, rssm_params, reward_fn, start, context, key),
+        ac.actor_opt)
+    critic, critic_metrics, critic_norm = gradient_update(
+        critic, lambda p: critic_loss(ac, p, imagined, context), ac.critic_opt)
     copy = (updates % ac.config.target_every) == 0
     target = jax.tree.map(lambda new, old: jnp.where(copy, new, old), critic.params, critic.target)
     critic = critic.replace(target=target)

@@ -18,7 +18,7 @@ import numpy as np
 import optax
 
 from morefree_jax.config import DistanceConfig
-from morefree_jax.networks import ContextMLP, NetState, apply_gradients, init_net_state, make_optimizer
+from morefree_jax.networks import ContextMLP, NetState, gradient_update, init_net_state, make_optimizer
 
 
 class Distance(NamedTuple):
@@ -103,8 +103,6 @@ def distance_update(dist: Distance, state: NetState, embeds: jax.Array, sequence
                     key: jax.Array) -> tuple[NetState, dict]:
     """One step on fresh pairs from the imagined embeddings (H+1, N, E)."""
     pairs = sample_pairs(key, dist.config, embeds.shape[0] - 1, sequence_id)
-    grad_fn = jax.value_and_grad(lambda p: distance_loss(dist, p, embeds, pairs, dist.config.num_pairs),
-                                 has_aux=True)
-    (_, metrics), grads = grad_fn(state.params)
-    state, grad_norm = apply_gradients(state, grads, dist.optimizer)
+    state, metrics, grad_norm = gradient_update(
+        state, lambda p: distance_loss(dist, p, embeds, pairs, dist.config.num_pairs), dist.optimizer)
     return state, {**metrics, "distance/grad_norm": grad_norm}

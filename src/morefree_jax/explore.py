@@ -20,9 +20,9 @@ from morefree_jax.networks import (
     MLP,
     Latent,
     NetState,
-    apply_gradients,
     elu,
     feature,
+    gradient_update,
     init_net_state,
     make_optimizer,
 )
@@ -93,7 +93,6 @@ def ensemble_loss(ens: Ensemble, params, latent: Latent, action: jax.Array):
 
 
 def ensemble_update(ens: Ensemble, state: NetState, latent: Latent, action: jax.Array):
-    grad_fn = jax.value_and_grad(lambda p: ensemble_loss(ens, p, latent, action), has_aux=True)
-    (_, metrics), grads = grad_fn(state.params)
-    state, grad_norm = apply_gradients(state, grads, ens.optimizer)
+    state, metrics, grad_norm = gradient_update(state, lambda p: ensemble_loss(ens, p, latent, action),
+                                                ens.optimizer)
     return state, {**metrics, "explore/ensemble_grad_norm": grad_norm}

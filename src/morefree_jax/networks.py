@@ -278,6 +278,15 @@ def init_net_state(params, optimizer: optax.GradientTransformation, with_target:
     return NetState(params, optimizer.init(params), params if with_target else None)
 
 
+def gradient_update(state: NetState, loss_fn, optimizer: optax.GradientTransformation):
+    """The one update step every learner uses: loss -> gradients -> clip + optimiser step (make_optimizer).
+
+    loss_fn(params) -> (loss, aux). Returns (new state, aux, pre-clip gradient norm)."""
+    (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+    state, grad_norm = apply_gradients(state, grads, optimizer)
+    return state, aux, grad_norm
+
+
 def apply_gradients(state: NetState, grads, optimizer: optax.GradientTransformation) -> tuple[NetState, dict]:
     """One optimiser step; returns the new state and the pre-clip gradient norm."""
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)

@@ -1,6 +1,12 @@
-"""Process settings for XLA's CPU runtime, applied when `morefree_jax` is imported (before JAX starts).
+"""Process settings for XLA's CPU runtime, applied by an explicit `configure()` before JAX starts.
 
-MOREFREE_JAX_RUNTIME picks them (measured with experiments/bench_core.py on the 2-core dev machine):
+Importing `morefree_jax` (or any module of it) changes no process state. A program that trains or
+benchmarks calls `morefree_jax.runtime.configure()` first thing, before any JAX computation: the CLIs
+(experiments/train.py, evaluate.py, bench*.py) and the test suite's conftest do; in a notebook, call it in
+the first cell. `settings()` tells what was applied (mode "unconfigured" if nothing was).
+
+`configure(mode)`, or MOREFREE_JAX_RUNTIME when mode is None, picks them (measured with
+experiments/bench_core.py on the 2-core dev machine):
 
 - `standard` (the default): `--xla_cpu_prefer_vector_width=512` on CPUs with AVX-512. XLA's loop fusions
   (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256: the `cpu` train step
@@ -102,8 +108,9 @@ def _add_xla_flags(wanted: list[str]) -> list[str]:
     flags = os.environ.get("XLA_FLAGS", "")
     added = [flag for flag in wanted if flag.split("=")[0] not in flags]
     if added and xla_bridge.backends_are_initialized():
-        warnings.warn(f"morefree_jax was imported after JAX started, too late for XLA_FLAGS {added}: "
-                      "train steps on CPU run slower; import morefree_jax first", stacklevel=3)
+        warnings.warn(f"morefree_jax.runtime.configure() was called after JAX started, too late for "
+                      f"XLA_FLAGS {added}: train steps on CPU run slower; call it before any JAX computation",
+                      stacklevel=3)
         return []
     os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
     return added
@@ -119,16 +126,37 @@ def _checked(mode: str) -> str:
     return mode
 
 
-def tune_cpu_runtime(mode: str | None = None) -> dict:
-    """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied."""
+_applied: dict | None = None  # what configure() applied in this process (None: not called)
+
+
+def configure(mode: str | None = None) -> dict:
+    """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied.
+    Call it before the first JAX computation (XLA reads its flags when its backend starts); a second call
+    returns the first call's settings."""
+    global _applied
     mode = _checked(mode) if mode else runtime_mode()
+    if _applied is not None:
+        if mode != _applied["mode"]:
+            warnings.warn(f"runtime already configured as {_applied['mode']!r}; {mode!r} ignored",
+                          stacklevel=2)
+        return _applied
     allocator = "jemalloc" if jemalloc_loaded() else "glibc"
     if mode == "default":
-        return {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
+        _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
+        return _applied
     wanted = ([YNN_OFF] if mode == "large" else []) + ([WIDE_VECTORS] if _has_avx512() else [])
     keep = _keep_freed_memory() if mode == "large" and allocator == "glibc" else False
-    return {"mode": mode, "allocator": allocator, "keep_freed_memory": keep,
-            "xla_flags": _add_xla_flags(wanted)}
+    _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": keep,
+                "xla_flags": _add_xla_flags(wanted)}
+    return _applied
+
+
+def settings() -> dict:
+    """What configure() applied in this process; mode "unconfigured" when it was not called."""
+    if _applied is not None:
+        return _applied
+    allocator = "jemalloc" if jemalloc_loaded() else "glibc"
+    return {"mode": "unconfigured", "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
 
 
 def print_allocator_env() -> None:

@@ -23,9 +23,9 @@ from morefree_jax.networks import (
     Gaussian,
     Latent,
     NetState,
-    apply_gradients,
     feature,
     gaussian_kl,
+    gradient_update,
     zero_latent,
 )
 
@@ -151,7 +151,6 @@ def world_model_loss(wm: WorldModel, params: dict, batch: Batch, key: jax.Array)
 def world_model_update(wm: WorldModel, optimizer: optax.GradientTransformation, state: NetState,
                        batch: Batch, key: jax.Array) -> tuple[NetState, Posterior, dict]:
     """One gradient step of the world model -> (state, posterior of the batch, metrics)."""
-    grad_fn = jax.value_and_grad(lambda p: world_model_loss(wm, p, batch, key), has_aux=True)
-    (_, (posterior, metrics)), grads = grad_fn(state.params)
-    state, grad_norm = apply_gradients(state, grads, optimizer)
+    state, (posterior, metrics), grad_norm = gradient_update(
+        state, lambda p: world_model_loss(wm, p, batch, key), optimizer)
     return state, posterior, {**metrics, "wm/grad_norm": grad_norm}
