@@ -78,7 +78,7 @@ def collection_rows(task: str, chunks: int = 5) -> list[dict]:
     chunk = jax.jit(functools.partial(collect_chunk, env, agent, cfg, planner_cfg, schedule_cfg))
     key_agent, key_stream = jax.random.split(jax.random.PRNGKey(0))
     agent_state = jax.jit(agent.init)(key_agent)
-    carry = [init_stream(env, agent, key_stream), init_schedule(env.observation_size, schedule_cfg),
+    carry = [init_stream(env, agent, key_stream), init_schedule(env.observation_size),
              start_search(planner_cfg, jnp.zeros(env.observation_size))]
 
     key_chunk = jax.random.PRNGKey(1)

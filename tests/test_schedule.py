@@ -45,7 +45,7 @@ def simulate(config: ScheduleConfig, num_chunks: int = NUM_CHUNKS):
             )
             return state, (choice.goal_type, choice.search, goal)
 
-        return jax.lax.scan(chunk, init_schedule(GOAL_SIZE, config), jax.random.split(key, num_chunks))
+        return jax.lax.scan(chunk, init_schedule(GOAL_SIZE), jax.random.split(key, num_chunks))
 
     final, (types, searches, goals) = run(jax.random.PRNGKey(0))
     return final, np.asarray(types), np.asarray(searches), np.asarray(goals)
@@ -105,7 +105,7 @@ def test_phase_lengths_metrics_and_validation():
     episodic = ScheduleConfig(kind="episodic_planner")
     assert episodic.resets_every_chunk and episodic.phase_lengths(100, 400) == (200, 200)
     config = ScheduleConfig()
-    state = init_schedule(GOAL_SIZE, config)
+    state = init_schedule(GOAL_SIZE)
     choice = choose_goal_type(config, state, jax.random.PRNGKey(0))
     _, state = commit_goal(config, state, choice, jnp.ones(3), 2 * jnp.ones(3), jnp.zeros(3))
     metrics = schedule_metrics(choice, state)

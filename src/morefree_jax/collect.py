@@ -64,13 +64,13 @@ def collect_config_for(env, schedule: ScheduleConfig, explore: bool, subgoal_thr
     subgoal_threshold: learned distance (env steps) of the early switch (the task's default_config)."""
     length = env.eval_episode_length
     go_steps = length // 2 if explore else length
-    threshold = subgoal_threshold
     episodic = schedule.kind == "episodic_planner"
     reset_every = hard_reset_every or env.hard_reset_every
     if episodic and reset_every % length:
         raise ValueError(f"episodic PEG needs hard_reset_every ({reset_every}) to be a multiple of the "
                          f"chunk length {length}")
-    return CollectConfig(go_steps, length - go_steps, float(threshold), int(reset_every), explore, episodic)
+    return CollectConfig(go_steps, length - go_steps, float(subgoal_threshold), int(reset_every), explore,
+                         episodic)
 
 
 @struct.dataclass

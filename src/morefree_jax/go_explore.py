@@ -91,8 +91,8 @@ class ScheduleState:
     chunk: jax.Array
 
 
-def init_schedule(goal_size: int, config: ScheduleConfig | None = None) -> ScheduleState:
-    del config  # the state is the same for every kind
+def init_schedule(goal_size: int) -> ScheduleState:
+    """The schedule state before the first chunk (the same for every kind)."""
     return ScheduleState(
         back_pending=jnp.zeros((), bool),
         back_goal=jnp.zeros((goal_size,), jnp.float32),
