@@ -5,6 +5,8 @@ ENV ?= point_umaze
 AGENT ?= morefree
 PRESET ?= cpu
 SEED ?= 0
+# SEEDS=0,1,2: several seeds in one program (a run dir each); overrides SEED.
+SEEDS ?=
 TEST_WORKERS ?= 2
 # Empty STEPS = the task's budget (its default_config: point_umaze 2e5 ... ant 8e5).
 STEPS ?=
@@ -38,7 +40,8 @@ bench:
 
 # Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
 train:
-	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) seed=$(SEED) \
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) \
+		$(if $(SEEDS),seeds=$(SEEDS),seed=$(SEED)) \
 		$(if $(STEPS),steps=$(STEPS)) $(ARGS)
 
 evaluate:

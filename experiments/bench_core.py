@@ -29,7 +29,9 @@ from morefree_jax.world_model import Batch
 
 SECTION = "core"
 SHAPES = {"paper": EnvSpec(29, 8, (0, 1)), "cpu": EnvSpec(7, 2, (0, 1)), "debug": EnvSpec(7, 2, (0, 1))}
-REFERENCE_TRAIN_S = 6.85  # original TF2 agent, paper config, ant shapes, this machine (issue 3)
+# Original TF2 agent, paper config, ant shapes, measured on another day (issue 3). Printed as a labelled
+# constant only: on a slower day here the same step took 1.5x longer, so a ratio to it means nothing.
+REFERENCE_TRAIN_S = 6.85
 
 
 def _row(name, value, unit, note=""):
@@ -96,19 +98,19 @@ def bench_train(name: str, reps: int, peak: float) -> list[dict]:
         _row(f"{name}/train_step_flops", flops / step_s / 1e9, "GFLOP/s",
              f"{flops / step_s / peak:.0%} of the matmul peak"),
     ]
-    if name == "paper":
-        ratio = step_s / REFERENCE_TRAIN_S
-        rows.append(_row("paper/ratio_to_tf2", ratio, "x", "vs 6.85 s of TF2 (lower wins)"))
+    if name == "paper":  # a constant from another day, not a ratio: this machine's speed varies by ~2x
+        rows.append(_row("paper/tf2_train_step_constant", REFERENCE_TRAIN_S, "s",
+                         "CONSTANT, not measured in this run: TF2 original, paper config (issue 3)"))
     return rows + bench_components(name, agent, state, batch, pools, reps)
 
 
 def bench_components(name, agent, state, batch, pools, reps) -> list[dict]:
-    parts = agent.modules
+    parts = agent.parts
     keys = jax.random.split(jax.random.PRNGKey(3), 4)
-    wm_part = jax.jit(parts["world_model_part"])
+    wm_part = jax.jit(parts.world_model_part)
     wm_state, posterior, _ = wm_part(state, batch, keys[0])
-    gc_part = jax.jit(parts["goal_conditioned_part"])
-    explore_part = jax.jit(parts["explore_part"])
+    gc_part = jax.jit(parts.goal_conditioned_part)
+    explore_part = jax.jit(parts.explore_part)
     gc_args = (state, wm_state.params, posterior, batch, pools, keys[1], keys[2])
     explore_args = (state, wm_state.params, posterior, batch, keys[1], keys[3])
     jax.block_until_ready(gc_part(*gc_args))

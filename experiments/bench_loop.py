@@ -41,10 +41,12 @@ from morefree_jax.config import preset
 from morefree_jax.config_run import resolve_config
 from morefree_jax.go_explore import ScheduleConfig, init_schedule
 from morefree_jax.planner import plan_goal, start_search
+from morefree_jax.programs import jit_run_fns
+from morefree_jax.run_fns import make_run_fns
 
 SECTION = "loop"
 REFERENCE_STEPS_PER_S = 370.0  # TF2 original: policy 1.1-1.6 ms + distance check 1.1 ms per env step
-REFERENCE_SEARCH_S = 41.0  # TF2 original, ant config: 39-43 s per call
+REFERENCE_SEARCH_S = 41.0  # TF2 original, ant config: 39-43 s per call on another day (a constant)
 
 
 def _row(name, value, unit, note=""):
@@ -126,17 +128,18 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
             f"{config.iterations} iterations, paper-size agent; first call (compile) {first_s:.1f} s; "
             f"traced {len(traces)}x")
     if task == "ant":
-        note += f"; {REFERENCE_SEARCH_S / seconds:.1f}x faster than the TF2 reference (39-43 s)"
+        note += f"; CONSTANT for context, not measured in this run: TF2 original {REFERENCE_SEARCH_S:.0f} s"
     return [_row(f"planner/{task}_search_s", seconds, "s", note)]
 
 
-def _chunk_times(agent: str, chunks: int) -> tuple[float, float, object]:
-    """(fastest collect s, fastest train s, Run) of `chunks` chunks of a cpu-preset point_umaze run."""
-    from morefree_jax.loop import prepare_run
+def jitted_run_fns(config):
+    return jit_run_fns(make_run_fns(config, envs_mjx.make(config.run.env)))
 
-    config = resolve_config(["env=point_umaze", f"agent={agent}", "preset=cpu", "run_dir=/nonexistent"],
-                            envs_mjx.ALL_ENVS)
-    run = prepare_run(config)
+
+def _chunk_times(agent: str, chunks: int) -> tuple[float, float, object]:
+    """(fastest collect s, fastest train s, RunFns) of `chunks` chunks of a cpu-preset point_umaze run."""
+    config = resolve_config(["env=point_umaze", f"agent={agent}", "preset=cpu"], envs_mjx.ALL_ENVS)
+    run = jitted_run_fns(config)
     state = run.prefill(run.init(jax.random.PRNGKey(0)))
     state, _ = jax.block_until_ready(run.collect(state))  # compiles
     state, _ = jax.block_until_ready(run.train_updates(state))  # compiles
@@ -193,16 +196,16 @@ def goal_box_rows(run_dir: str | None = None, searches: int = 10) -> list[dict]:
     visited range as the search box (rf_peg's search from the stream's current state)."""
     from morefree_jax import replay as replay_lib
     from morefree_jax.collect import choose_goal
-    from morefree_jax.loop import prepare_run, restore_run
+    from morefree_jax.loop import restore_run
 
     if run_dir is None:
-        config = resolve_config(["env=point_umaze", "agent=rf_peg", "preset=cpu", "run_dir=/nonexistent"],
-                                envs_mjx.ALL_ENVS)
-        run = prepare_run(config)
+        config = resolve_config(["env=point_umaze", "agent=rf_peg", "preset=cpu"], envs_mjx.ALL_ENVS)
+        run = jitted_run_fns(config)
         state = run.prefill(run.init(jax.random.PRNGKey(0)))
         where = f"after the {config.run.prefill}-step prefill"
     else:
-        run, state, step = restore_run(run_dir)
+        fns, state, step = restore_run(run_dir)
+        run = jit_run_fns(fns)
         where = f"{run_dir} at step {step}"
     env, replay = run.env, state.replay
     observations = np.asarray(replay.obs[:min(int(replay.count), replay.obs.shape[0])])

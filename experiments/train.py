@@ -1,11 +1,13 @@
 """Train an agent on a reset-free task; re-running the same command resumes from the last checkpoint.
 
     python -m experiments.train env=point_umaze agent=morefree preset=cpu seed=0 steps=200000 [key=value ...]
+    python -m experiments.train env=point_umaze seeds=0,1,2     # three seeds in one program, a run dir each
 
 Keys: env, agent (a variant: morefree, rf_peg, peg, dreamer_gc, mf_no_bfge, mf_no_imag, mf_task_only),
 preset (paper, cpu, debug), seed, steps; any dotted config key (wm.deter=64, planner.iterations=3,
 schedule.alpha=0.3, run.eval_every=5000, or run keys without "run.": eval_every=5000). The run dir is
-runs/<env>/<agent>/seed<seed> unless run_dir=... is given. Bad input exits with code 2 and one line.
+runs/<env>/<agent>/seed<seed> unless run_dir=... is given (with seeds=: <run_dir>/seed<k>). Bad input
+exits with code 2 and one line.
 """
 
 from __future__ import annotations
@@ -27,6 +29,18 @@ def _runtime_line() -> str:
     return line
 
 
+def split_seeds(argv: list[str]) -> tuple[tuple[int, ...] | None, list[str]]:
+    """(the seeds of a `seeds=0,1,2` argument or None, the other arguments); one-line ConfigErrors."""
+    given = [arg for arg in argv if arg.startswith("seeds=")]
+    if not given:
+        return None, argv
+    if len(given) > 1 or any(arg.startswith(("seed=", "run.seed=")) for arg in argv):
+        raise ConfigError("give either seed=<k> or seeds=<k,...> (once), not both")
+    from morefree_jax.seeds import parse_seeds
+
+    return parse_seeds(given[0].partition("=")[2]), [arg for arg in argv if arg not in given]
+
+
 def main(argv: list[str]) -> int:
     if any(arg in ("-h", "--help") for arg in argv):
         print(__doc__)
@@ -36,15 +50,19 @@ def main(argv: list[str]) -> int:
     paper = "preset=paper" in argv and runtime.MODE_VARIABLE not in os.environ
     runtime.configure("large" if paper else None)
     try:
+        seeds, argv = split_seeds(argv)
         config = resolve_config(argv, envs_mjx.ALL_ENVS)
-        from morefree_jax.loop import prepare_run  # imports jax: after the cheap checks
+        from morefree_jax import loop  # imports jax: after the cheap checks
 
-        run = prepare_run(config)
-        print(f"run dir {run.run_dir}: {config.run.agent} on {config.run.env}, preset {config.run.preset}, "
-              f"seed {config.run.seed}, chunk {run.chunk_len} steps, {run.updates_per_chunk} updates/chunk",
-              flush=True)
+        seeds = seeds or (config.run.seed,)
+        programs = loop.build_programs(config, len(seeds))
+        fns, run_dirs = programs.fns, [c.run.resolved_run_dir for c in loop.seed_configs(config, seeds)]
+        plural = "s" if len(seeds) > 1 else ""
+        print(f"run dir{plural} {', '.join(run_dirs)}: {config.run.agent} on {config.run.env}, preset "
+              f"{config.run.preset}, seed{plural} {','.join(map(str, seeds))}, chunk {fns.chunk_len} steps, "
+              f"{fns.updates_per_chunk} updates/chunk", flush=True)
         print(_runtime_line(), flush=True)
-        summary = run.train()
+        summary = loop.train(config, seeds, programs)[0]
     except (ConfigError, ConfigMismatchError, CheckpointError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
@@ -54,7 +72,7 @@ def main(argv: list[str]) -> int:
     if summary.interrupted:
         print(f"interrupted at step {summary.env_steps}; checkpoint saved; re-run the same command to resume")
         return 130
-    print(f"done: {summary.env_steps} env steps; run dir {summary.run_dir}")
+    print(f"done: {summary.env_steps} env steps; run dirs {', '.join(run_dirs)}")
     return 0
 
 

@@ -1,5 +1,5 @@
-"""Shared pieces of the run tests: tiny debug runs (compiled once per variant per session) and the
-host-callback detectors."""
+"""Shared pieces of the run tests: tiny debug runs (compiled programs shared per variant and seed count)
+and the host-callback detectors."""
 
 from __future__ import annotations
 
@@ -38,20 +38,21 @@ def debug_config(agent: str, *extra: str):
 
 
 @functools.lru_cache(maxsize=1)
-def _debug_run(agent: str):
-    """One variant's Run at a time: switching variants drops the previous Run and JAX's executables.
+def debug_programs(agent: str, num_seeds: int = 1):
+    """One variant's programs at a time: switching variants drops the previous ones and JAX's executables.
     With the MJX physics in the collect program, XLA aborted compiling or loading a variant's collect in a
     process that held the executables of five other variants (tests/test_loop.py, 2026-11-29)."""
-    from morefree_jax.loop import prepare_run
+    from morefree_jax.loop import build_programs
 
     jax.clear_caches()
-    return prepare_run(debug_config(agent, "steps=200", "run_dir=/nonexistent"))
+    return build_programs(debug_config(agent, "steps=200"), num_seeds)
 
 
-def debug_run(agent: str):
-    """(Run, a fresh prefilled RunState): the Run and its compiled functions are shared per variant."""
-    run = _debug_run(agent)
-    return run, run.prefill(run.init(jax.random.PRNGKey(0)))
+def debug_run(agent: str, seeds: tuple[int, ...] = (0,)):
+    """(Programs, a fresh prefilled RunState with a leading seed axis) of the debug config."""
+    programs = debug_programs(agent, len(seeds))
+    keys = jax.numpy.stack([jax.random.PRNGKey(seed) for seed in seeds])
+    return programs, programs.prefill(programs.init(keys))
 
 
 def callback_primitives(jaxpr) -> set[str]:

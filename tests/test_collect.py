@@ -191,19 +191,21 @@ def test_callback_detector_sees_a_debug_callback():
 
 
 def test_chunk_function_compiles_once_and_has_no_host_callback():
-    run, state = debug_run("morefree")
-    jaxpr = jax.make_jaxpr(run._collect)(state)
+    programs, state = debug_run("morefree")
+    jaxpr = jax.make_jaxpr(programs.fns.collect)(jax.tree.map(lambda x: x[0], state))
     assert not callback_primitives(jaxpr.jaxpr)
-    assert not hlo_has_callback(run.collect, state)
+    assert not hlo_has_callback(programs.collect, state)
     for _ in range(2):
-        state, metrics = run.collect(state)
-    assert run.collect._cache_size() == 1  # also after the restored runs of test_loop (same entry)
+        state, metrics = programs.collect(state)
+    assert programs.collect._cache_size() == 1  # also after the restored runs of test_loop (same entry)
     assert all(np.isfinite(np.asarray(v)).all() for v in metrics.values())
 
 
 def test_goal_scores_on_the_last_steps_equal_the_full_computation():
-    run, state = debug_run("morefree")
-    agent, candidates = run.agent, jax.random.uniform(jax.random.PRNGKey(3), (6, 6), minval=0.0, maxval=8.0)
+    programs, state = debug_run("morefree")
+    state = jax.tree.map(lambda x: x[0], state)
+    agent = programs.fns.agent
+    candidates = jax.random.uniform(jax.random.PRNGKey(3), (6, 6), minval=0.0, maxval=8.0)
     config = PlannerConfig(horizon=12, use_last_steps=4)
 
     @jax.jit

@@ -14,9 +14,9 @@ from __future__ import annotations
 import pytest
 
 import envs_mjx
+from morefree_jax import loop
 from morefree_jax.config_run import resolve_config
 from morefree_jax.logger import read_metrics
-from morefree_jax.loop import prepare_run
 
 STEPS = 20_000
 REQUIRED_SUCCESS = 0.5
@@ -26,7 +26,7 @@ REQUIRED_SUCCESS = 0.5
 def test_morefree_solves_point_umaze_at_cpu_preset(tmp_path):
     arguments = ["env=point_umaze", "agent=morefree", "preset=cpu", "seed=0", f"steps={STEPS}",
                  "eval_every=2500", f"run_dir={tmp_path}"]
-    summary = prepare_run(resolve_config(arguments, envs_mjx.ALL_ENVS)).train(progress="off")
+    summary = loop.train(resolve_config(arguments, envs_mjx.ALL_ENVS), progress="off")[0]
     assert summary.env_steps == STEPS
     curve = [(r["step"], r["eval/success"]) for r in read_metrics(tmp_path / "metrics.jsonl")
              if "eval/success" in r]

@@ -1,8 +1,8 @@
 """Whole runs (debug preset, point_umaze): files, every variant, exact resume after SIGKILL, bad
 checkpoints, config refusal, Ctrl-C, bad CLI input.
 
-Runs share compiled functions through loop_helpers.debug_run (Run.with_run changes only host settings);
-the CLI subprocess loads this process's executables from the persistent compilation cache.
+Runs share compiled programs through loop_helpers.debug_programs (loop.train(..., programs=...) reuses
+them across run dirs and budgets); the CLI subprocesses share a persistent compilation cache.
 """
 
 from __future__ import annotations
@@ -22,11 +22,13 @@ import numpy as np
 import pytest
 
 from experiments import train as train_cli
+from morefree_jax import loop
 from morefree_jax.checkpoint import ConfigMismatchError, latest_valid
 from morefree_jax.logger import read_metrics
-from morefree_jax.loop import keep_if_finite, prepare_run
+from morefree_jax.programs import seed_slice
+from morefree_jax.run_fns import keep_if_finite
 from morefree_jax.variants import VARIANTS
-from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_run
+from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL = 20  # DEBUG_ARGS: prefill=20, then chunks of 100 steps
@@ -34,14 +36,17 @@ TWO_CHUNKS, THREE_CHUNKS = PREFILL + 200, PREFILL + 300
 
 
 def train(agent: str, run_dir, total_steps: int, **changes):
-    run, _ = debug_run(agent)
-    return run.with_run(run_dir=str(run_dir), total_steps=total_steps, **changes).train(progress="off")
+    programs = debug_programs(agent)
+    extra = [f"{key}={value}" for key, value in changes.items()]
+    config = debug_config(agent, f"run_dir={run_dir}", f"steps={total_steps}", *extra)
+    return loop.train(config, programs=programs, progress="off")[0]
 
 
 def final_state(agent: str, run_dir):
-    run, template = debug_run(agent)
-    ignore = tuple(f"run.{key}" for key in run.HOST_ONLY_KEYS)  # debug_run's own run settings differ
-    restored = latest_valid(run_dir, template, run.config_dict, ignore_config_keys=ignore)
+    """(step, state) of the run dir's newest checkpoint (restored into the debug programs' state layout)."""
+    template = debug_programs(agent).init(jax.random.PRNGKey(0)[None])
+    config_dict = json.loads((pathlib.Path(run_dir) / "config.json").read_text())
+    restored = latest_valid(run_dir, seed_slice(template, 0), config_dict)
     return restored.step, restored.state
 
 
@@ -122,9 +127,9 @@ def test_corrupted_checkpoint_is_named_and_the_previous_one_used(tmp_path, capsy
 def test_run_dir_with_a_different_config_is_refused(tmp_path):
     train("morefree", tmp_path, PREFILL + 100)
     before = (tmp_path / "metrics.jsonl").read_text()
-    other = prepare_run(debug_config("morefree", "wm.deter=16", f"run_dir={tmp_path}", "steps=220"))
+    other = debug_config("morefree", "wm.deter=16", f"run_dir={tmp_path}", "steps=220")
     with pytest.raises(ConfigMismatchError, match=r"agent\.wm\.deter: 32 -> 16"):
-        other.train(progress="off")
+        loop.train(other, progress="off")
     assert (tmp_path / "metrics.jsonl").read_text() == before  # nothing destroyed
 
 

@@ -22,31 +22,26 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import flax
 import jax
 import jax.numpy as jnp
 
+from morefree_jax import agent_train
 from morefree_jax.actor_critic import (
-    actor_critic_update,
     imagine_with,
     init_actor_critic,
     make_actor_critic,
     policy,
     project,
     returns_of,
-    start_without_gradient,
 )
 from morefree_jax.config import AgentConfig
-from morefree_jax.distance import distance, distance_update, goal_projection, init_distance, make_distance
-from morefree_jax.explore import disagreement, ensemble_update, init_ensemble, make_ensemble
+from morefree_jax.distance import distance, init_distance, make_distance
+from morefree_jax.explore import disagreement, init_ensemble, make_ensemble
 from morefree_jax.imagination import (
-    SOURCE_EVAL,
-    SOURCE_INITIAL,
-    GoalPools,
     Trajectory,
-    sample_imagination_goals,
 )
 from morefree_jax.networks import (
     ERF_INV_LIMIT,
@@ -59,7 +54,7 @@ from morefree_jax.networks import (
     make_optimizer,
     zero_latent,
 )
-from morefree_jax.world_model import Batch, encode, init_world_model, make_world_model, world_model_update
+from morefree_jax.world_model import encode, init_world_model, make_world_model
 
 MODE_GOAL, MODE_EXPLORE = 0, 1  # policy choice (bit 0)
 MODE_DETERMINISTIC = 2  # bit 1: actor mode instead of a sample; e.g. MODE_GOAL | MODE_DETERMINISTIC for eval
@@ -124,6 +119,27 @@ def _acting_noise(key: jax.Array, batch_shape: tuple[int, ...], stoch: int, acti
     return SQRT2 * jax.scipy.special.erfinv(symmetric), unit[..., stoch:]
 
 
+class AgentModules(NamedTuple):
+    """The agent's networks and optimiser (built once by make_agent; static under jit)."""
+
+    wm: Any
+    wm_opt: Any
+    gc: Any
+    explore_ac: Any
+    dist: Any
+    ens: Any
+    config: AgentConfig
+    spec: EnvSpec
+
+
+class AgentParts(NamedTuple):
+    """The three parts of train_step, bound to the agent's modules (benchmarks, notebooks)."""
+
+    world_model_part: Callable  # (state, batch, key) -> (wm state, posterior, metrics)
+    goal_conditioned_part: Callable  # (state, wm_params, posterior, batch, goals, key_starts, key)
+    explore_part: Callable  # (state, wm_params, posterior, batch, key_starts, key)
+
+
 class Agent(NamedTuple):
     """Pure functions of the agent (see the module docstring) and the pieces they are built from."""
 
@@ -137,188 +153,109 @@ class Agent(NamedTuple):
     exploration_value: Callable
     config: AgentConfig
     spec: EnvSpec
-    modules: dict
+    modules: AgentModules
+    parts: AgentParts
 
 
 def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
-    wm = make_world_model(config.wm, spec.obs_size)
-    wm_opt = make_optimizer(config.wm.opt)
-    gc = make_actor_critic(config.gc, spec.action_size, use_context=True)
-    explore_ac = make_actor_critic(config.explore.ac, spec.action_size, use_context=False)
-    dist = make_distance(config.distance)
-    ens = make_ensemble(config.explore, config.wm.stoch)
-    feat_size = config.wm.deter + config.wm.stoch
+    m = AgentModules(wm=make_world_model(config.wm, spec.obs_size), wm_opt=make_optimizer(config.wm.opt),
+                     gc=make_actor_critic(config.gc, spec.action_size, use_context=True),
+                     explore_ac=make_actor_critic(config.explore.ac, spec.action_size, use_context=False),
+                     dist=make_distance(config.distance), ens=make_ensemble(config.explore, config.wm.stoch),
+                     config=config, spec=spec)
+    parts = AgentParts(partial(agent_train.world_model_part, m),
+                       partial(agent_train.goal_conditioned_part, m), partial(agent_train.explore_part, m))
+    return Agent(partial(init, m), partial(initial_latent, m), partial(goal_context, m), partial(act, m),
+                 partial(agent_train.train_step, m), partial(goal_distance, m), partial(imagine_to_goals, m),
+                 partial(exploration_value, m), config, spec, m, parts)
 
-    def init(key: jax.Array) -> AgentState:
-        key_wm, key_gc, key_dist, key_ens, key_expl = jax.random.split(key, 5)
-        gc_actor, gc_critic = init_actor_critic(gc, key_gc, feat_size, wm.embed_size)
-        explore_actor, explore_critic = init_actor_critic(explore_ac, key_expl, feat_size, 0)
-        return AgentState(
-            wm=init_net_state(init_world_model(wm, key_wm, spec.obs_size, spec.action_size), wm_opt),
-            gc_actor=gc_actor, gc_critic=gc_critic, distance=init_distance(dist, key_dist, wm.embed_size),
-            ensemble=init_ensemble(ens, key_ens, feat_size + spec.action_size),
-            explore_actor=explore_actor, explore_critic=explore_critic, updates=jnp.zeros((), jnp.int32),
-        )
 
-    def initial_latent(batch_shape: tuple[int, ...] = ()) -> Latent:
-        """The zero latent; filtering an observation from it equals an is_first step."""
-        return zero_latent(config.wm.deter, config.wm.stoch, batch_shape)
+def init(m: AgentModules, key: jax.Array) -> AgentState:
+    key_wm, key_gc, key_dist, key_ens, key_expl = jax.random.split(key, 5)
+    feat_size = m.config.wm.deter + m.config.wm.stoch
+    gc_actor, gc_critic = init_actor_critic(m.gc, key_gc, feat_size, m.wm.embed_size)
+    explore_actor, explore_critic = init_actor_critic(m.explore_ac, key_expl, feat_size, 0)
+    return AgentState(
+        wm=init_net_state(init_world_model(m.wm, key_wm, m.spec.obs_size, m.spec.action_size), m.wm_opt),
+        gc_actor=gc_actor, gc_critic=gc_critic, distance=init_distance(m.dist, key_dist, m.wm.embed_size),
+        ensemble=init_ensemble(m.ens, key_ens, feat_size + m.spec.action_size),
+        explore_actor=explore_actor, explore_critic=explore_critic, updates=jnp.zeros((), jnp.int32),
+    )
 
-    def goal_context(state: AgentState, goal) -> GoalContext:
-        """Prepares goal observations (..., O) for `act` (see GoalContext)."""
-        return GoalContext(project(gc.actor, state.gc_actor.params, encode(wm, state.wm.params, goal)))
 
-    def act(state: AgentState, latent: Latent, prev_action, obs, goal, key, mode):
-        """Filters `obs` into the latent one step, then acts -> (action (A,), latent).
+def initial_latent(m: AgentModules, batch_shape: tuple[int, ...] = ()) -> Latent:
+    """The zero latent; filtering an observation from it equals an is_first step."""
+    return zero_latent(m.config.wm.deter, m.config.wm.stoch, batch_shape)
 
-        latent (...), prev_action (..., A), obs (..., O); goal: a goal observation (..., O) or its
-        `goal_context` (same actions, less work per call); mode: MODE_GOAL or MODE_EXPLORE, optionally
-        | MODE_DETERMINISTIC; a Python int selects statically, an int array selects under lax.cond.
 
-        A jitted single call on CPU costs more in XLA's runtime than in arithmetic: independent branches
-        (goal encoding, the random draws) are handed to other threads. Hence one random draw per call and
-        the optional goal context.
-        """
-        params = state.wm.params
-        noise, action_unit = _acting_noise(key, latent.stoch.shape[:-1], config.wm.stoch, spec.action_size)
-        latent, _, _ = wm.rssm.apply(params["rssm"], latent, prev_action, encode(wm, params, obs), noise)
-        feat = feature(latent)
+def goal_context(m: AgentModules, state: AgentState, goal) -> GoalContext:
+    """Prepares goal observations (..., O) for `act` (see GoalContext)."""
+    return GoalContext(project(m.gc.actor, state.gc_actor.params, encode(m.wm, state.wm.params, goal)))
 
-        def goal_policy():
-            context = goal if isinstance(goal, GoalContext) else goal_context(state, goal)
-            return tuple(policy(gc, state.gc_actor.params, feat, context.projection))
 
-        def explore_policy():
-            return tuple(policy(explore_ac, state.explore_actor.params, feat, None))
+def act(m: AgentModules, state: AgentState, latent: Latent, prev_action, obs, goal, key, mode):
+    """Filters `obs` into the latent one step, then acts -> (action (A,), latent).
 
-        if isinstance(mode, int):
-            loc, scale = explore_policy() if mode & MODE_EXPLORE else goal_policy()
-            deterministic = bool(mode & MODE_DETERMINISTIC)
-        else:
-            loc, scale = jax.lax.cond(mode & MODE_EXPLORE != 0, explore_policy, goal_policy)
-            deterministic = mode & MODE_DETERMINISTIC != 0
-        actor = TruncNormal(loc, scale)
-        action = jnp.where(deterministic, actor.mode(), actor.sample_from_uniform(action_unit))
-        return action, latent
+    latent (...), prev_action (..., A), obs (..., O); goal: a goal observation (..., O) or its
+    `goal_context` (same actions, less work per call); mode: MODE_GOAL or MODE_EXPLORE, optionally
+    | MODE_DETERMINISTIC; a Python int selects statically, an int array selects under lax.cond.
 
-    def goal_distance(state: AgentState, latent: Latent, goal_obs, obs=None) -> jax.Array:
-        """Learned temporal distance to `goal_obs` in env steps (D * horizon, PEG's go-phase check).
+    A jitted single call on CPU costs more in XLA's runtime than in arithmetic: independent branches
+    (goal encoding, the random draws) are handed to other threads. Hence one random draw per call and
+    the optional goal context.
+    """
+    params = state.wm.params
+    noise, action_unit = _acting_noise(key, latent.stoch.shape[:-1], m.config.wm.stoch, m.spec.action_size)
+    latent, _, _ = m.wm.rssm.apply(params["rssm"], latent, prev_action, encode(m.wm, params, obs), noise)
+    feat = feature(latent)
 
-        PEG embeds the current observation with the encoder; pass `obs` for that. Without it the current
-        state is embedded by the embed head from `latent` (what the goal reward uses).
-        """
-        params = state.wm.params
-        if obs is None:
-            state_embed = wm.embed_head.apply(params["embed_head"], feature(latent))
-        else:
-            state_embed = encode(wm, params, obs)
-        goal_embed = encode(wm, params, goal_obs)
-        return distance(dist, state.distance.params, state_embed, goal_embed) * config.gc.horizon
+    def goal_policy():
+        context = goal if isinstance(goal, GoalContext) else goal_context(m, state, goal)
+        return tuple(policy(m.gc, state.gc_actor.params, feat, context.projection))
 
-    def imagine_to_goals(state: AgentState, start: Latent, goals, horizon: int, key) -> Trajectory:
-        """Goal-conditioned policy rolled out in the model from one start latent (unbatched) to each of G
-        goals (G, O) -> Trajectory with N = G (time-major, H+1 states)."""
-        num = goals.shape[0]
-        starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (num, *x.shape)), start)
-        goal_embed = encode(wm, state.wm.params, goals)
-        horizon_gc = gc._replace(config=dataclasses.replace(gc.config, horizon=horizon))
-        return imagine_with(horizon_gc, state.gc_actor.params, wm.rssm, state.wm.params["rssm"], starts,
-                            goal_embed, key)
+    def explore_policy():
+        return tuple(policy(m.explore_ac, state.explore_actor.params, feat, None))
 
-    def exploration_value(state: AgentState, trajectory: Trajectory):
-        """-> (disagreement reward (H+1, G), explore target-critic TD(lambda) returns (H, G))."""
-        reward = disagreement(ens, state.ensemble.params, trajectory.feat, trajectory.action)
-        target, _ = returns_of(explore_ac, state.explore_critic.target, trajectory, reward[:-1], None)
-        return reward, target
+    if isinstance(mode, int):
+        loc, scale = explore_policy() if mode & MODE_EXPLORE else goal_policy()
+        deterministic = bool(mode & MODE_DETERMINISTIC)
+    else:
+        loc, scale = jax.lax.cond(mode & MODE_EXPLORE != 0, explore_policy, goal_policy)
+        deterministic = mode & MODE_DETERMINISTIC != 0
+    actor = TruncNormal(loc, scale)
+    action = jnp.where(deterministic, actor.mode(), actor.sample_from_uniform(action_unit))
+    return action, latent
 
-    def world_model_part(state: AgentState, batch: Batch, key: jax.Array):
-        """World-model update -> (wm state, posterior of the batch, metrics)."""
-        return world_model_update(wm, wm_opt, state.wm, batch, key)
 
-    def goal_conditioned_part(state: AgentState, wm_params, posterior, batch: Batch, goals: GoalPools,
-                              key_starts, key):
-        """Goal-conditioned actor-critic and temporal distance -> (gc actor, gc critic, distance, metrics).
+def goal_distance(m: AgentModules, state: AgentState, latent: Latent, goal_obs, obs=None) -> jax.Array:
+    """Learned temporal distance to `goal_obs` in env steps (D * horizon, PEG's go-phase check).
 
-        `key_starts` picks the imagination starts (shared with the exploration part, as in PEG)."""
-        key_goals, key_gc, key_dist = jax.random.split(key, 3)
-        starts, sequence_id, replay_obs = _imagination_starts(posterior.latent, batch.obs, key_starts)
-        goal_obs, source = sample_imagination_goals(key_goals, replay_obs, goals, config.alpha,
-                                                    sequence_id.shape[0])
-        goal_embed = encode(wm, wm_params, goal_obs)
-        distance_projection = goal_projection(dist, state.distance.params, goal_embed)
+    PEG embeds the current observation with the encoder; pass `obs` for that. Without it the current
+    state is embedded by the embed head from `latent` (what the goal reward uses).
+    """
+    params = state.wm.params
+    if obs is None:
+        state_embed = m.wm.embed_head.apply(params["embed_head"], feature(latent))
+    else:
+        state_embed = encode(m.wm, params, obs)
+    goal_embed = encode(m.wm, params, goal_obs)
+    return distance(m.dist, state.distance.params, state_embed, goal_embed) * m.config.gc.horizon
 
-        def embed(feat):
-            return wm.embed_head.apply(wm_params["embed_head"], feat)
 
-        def goal_reward(trajectory: Trajectory):
-            # Reward on states 0..H-1; the distance trains on the embeddings of all H+1 states, and the
-            # last one needs no gradient (it enters no reward).
-            def reward_and_embed(feat):
-                embeds = embed(feat)
-                d = dist.net.apply(state.distance.params, embeds, distance_projection[None],
-                                   method=dist.net.from_projection)[..., 0]
-                return -d, embeds
+def imagine_to_goals(m: AgentModules, state: AgentState, start: Latent, goals, horizon: int,
+                     key) -> Trajectory:
+    """Goal-conditioned policy rolled out in the model from one start latent (unbatched) to each of G
+    goals (G, O) -> Trajectory with N = G (time-major, H+1 states)."""
+    num = goals.shape[0]
+    starts = jax.tree.map(lambda x: jnp.broadcast_to(x, (num, *x.shape)), start)
+    goal_embed = encode(m.wm, state.wm.params, goals)
+    horizon_gc = m.gc._replace(config=dataclasses.replace(m.gc.config, horizon=horizon))
+    return imagine_with(horizon_gc, state.gc_actor.params, m.wm.rssm, state.wm.params["rssm"], starts,
+                        goal_embed, key)
 
-            reward, embeds = start_without_gradient(reward_and_embed, trajectory.feat[:-1])
-            last = embed(jax.lax.stop_gradient(trajectory.feat[-1:]))
-            return reward, jnp.concatenate([embeds, last], 0)
 
-        gc_actor, gc_critic, imagined, gc_metrics = actor_critic_update(
-            gc, state.gc_actor, state.gc_critic, state.updates, wm.rssm, wm_params["rssm"], goal_reward,
-            starts, goal_embed, key_gc, "gc")
-        distance_state, distance_metrics = distance_update(dist, state.distance, imagined.reward_extras,
-                                                           sequence_id, key_dist)
-        metrics = {**gc_metrics, **distance_metrics, "gc/goal_eval_frac": jnp.mean(source == SOURCE_EVAL),
-                   "gc/goal_initial_frac": jnp.mean(source == SOURCE_INITIAL)}
-        return gc_actor, gc_critic, distance_state, metrics
-
-    def explore_part(state: AgentState, wm_params, posterior, batch: Batch, key_starts, key_expl):
-        """Plan2Explore ensemble and exploration actor-critic -> (ensemble, actor, critic, metrics)."""
-        starts, _, _ = _imagination_starts(posterior.latent, batch.obs, key_starts)
-        ensemble_state, ensemble_metrics = ensemble_update(ens, state.ensemble, posterior.latent,
-                                                           jnp.swapaxes(batch.action, 0, 1))
-
-        def explore_reward(trajectory: Trajectory):
-            reward = start_without_gradient(partial(disagreement, ens, ensemble_state.params),
-                                            trajectory.feat[:-1], trajectory.action[:-1])
-            return reward, None
-
-        explore_actor, explore_critic, _, explore_metrics = actor_critic_update(
-            explore_ac, state.explore_actor, state.explore_critic, state.updates, wm.rssm, wm_params["rssm"],
-            explore_reward, starts, None, key_expl, "explore")
-        return ensemble_state, explore_actor, explore_critic, {**ensemble_metrics, **explore_metrics}
-
-    def train_step(state: AgentState, batch: Batch, goals: GoalPools, key: jax.Array):
-        """All five updates on one replay batch (B, T, ...) -> (state, metrics)."""
-        key_wm, key_starts, key_gc, key_expl = jax.random.split(key, 4)
-        wm_state, posterior, wm_metrics = world_model_part(state, batch, key_wm)
-        gc_actor, gc_critic, distance_state, gc_metrics = goal_conditioned_part(
-            state, wm_state.params, posterior, batch, goals, key_starts, key_gc)
-        # The two imagination parts are independent and XLA may interleave them; the barrier makes the
-        # exploration part wait for the goal-conditioned one (measured: paper step 6.85 -> 6.56 s median).
-        (gc_actor, gc_critic, distance_state), posterior = jax.lax.optimization_barrier(
-            ((gc_actor, gc_critic, distance_state), posterior))
-        ensemble_state, explore_actor, explore_critic, explore_metrics = explore_part(
-            state, wm_state.params, posterior, batch, key_starts, key_expl)
-        new_state = AgentState(wm_state, gc_actor, gc_critic, distance_state, ensemble_state, explore_actor,
-                               explore_critic, state.updates + 1)
-        return new_state, {**wm_metrics, **gc_metrics, **explore_metrics}
-
-    def _imagination_starts(latent: Latent, obs, key):
-        """Flattened posterior starts (N, ...), their replay row (N,), and the batch observations (T*B, O)."""
-        length, batch_size = latent.deter.shape[:2]
-        flat = jax.tree.map(lambda x: x.reshape(length * batch_size, *x.shape[2:]), latent)
-        sequence_id = jnp.tile(jnp.arange(batch_size), length)
-        replay_obs = jnp.swapaxes(obs, 0, 1).reshape(length * batch_size, -1)
-        num = config.imag_starts
-        if 0 < num < length * batch_size:
-            index = jax.random.permutation(key, length * batch_size)[:num]
-            flat, sequence_id = jax.tree.map(lambda x: x[index], flat), sequence_id[index]
-        return flat, sequence_id, replay_obs
-
-    # Building blocks, for benchmarks and notebooks: the modules and the three parts of train_step.
-    modules = {"world_model": wm, "gc": gc, "explore_ac": explore_ac, "distance": dist, "ensemble": ens,
-               "world_model_part": world_model_part, "goal_conditioned_part": goal_conditioned_part,
-               "explore_part": explore_part}
-    return Agent(init, initial_latent, goal_context, act, train_step, goal_distance, imagine_to_goals,
-                 exploration_value, config, spec, modules)
+def exploration_value(m: AgentModules, state: AgentState, trajectory: Trajectory):
+    """-> (disagreement reward (H+1, G), explore target-critic TD(lambda) returns (H, G))."""
+    reward = disagreement(m.ens, state.ensemble.params, trajectory.feat, trajectory.action)
+    target, _ = returns_of(m.explore_ac, state.explore_critic.target, trajectory, reward[:-1], None)
+    return reward, target

@@ -249,6 +249,19 @@ class RunCheckpointer:
             raise CheckpointError(f"arrays of {step_dir}/state fail their checksums: {bad[:5]}")
         return Restored(step, state, meta["user"])
 
+    def restore_step(self, step: int, target: Any) -> Restored:
+        """The checkpoint of `step`, verified (CheckpointError / ConfigMismatchError when it is not good)."""
+        self.manager.reload()
+        if step not in self.manager.all_steps():
+            raise CheckpointError(f"no checkpoint {self.directory / str(step)}")
+        try:
+            return self._restore_verified(step, target)
+        except (ConfigMismatchError, CheckpointError):
+            raise
+        except Exception as error:  # noqa: BLE001 - any failure to load means "not a good checkpoint"
+            message = f"checkpoint {self.directory / str(step)} is bad ({_one_line(error)})"
+            raise CheckpointError(message) from None
+
     def latest_valid(self, target: Any) -> Restored | None:
         """Restores the newest checkpoint that loads and verifies, into the structure of `target`.
 

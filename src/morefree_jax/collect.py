@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from morefree_jax.agent import MODE_EXPLORE, MODE_GOAL
+from morefree_jax.batching import lazy_cond
 from morefree_jax.go_explore import GoalChoice, GoalType, ScheduleConfig, commit_goal, next_chunk_goal
 from morefree_jax.go_explore import schedule_metrics as _schedule_metrics
 from morefree_jax.planner import PlannerConfig, peg_score, plan_goal, start_search
@@ -132,7 +133,7 @@ def _advance(env, agent, cfg: CollectConfig, stream: StreamState, act_fn, distan
         return env_state, latent, action, distance_fn(stream, latent, env_state.obs)
 
     due = stream.steps % cfg.hard_reset_every == 0
-    env_state, latent, action, learned_distance = jax.lax.cond(due, hard_reset, step)
+    env_state, latent, action, learned_distance = lazy_cond(due, hard_reset, step)  # lazy over seeds too
     go = stream.go_active
     go_steps_left = stream.go_steps_left - go.astype(jnp.int32)
     # Without exploration the go phase never ends; otherwise it ends on the learned distance or timeout.
@@ -159,7 +160,7 @@ def _policy_fns(agent, cfg: CollectConfig, agent_state):
         if not cfg.explore:  # no switch to check for
             return jnp.asarray(jnp.inf, jnp.float32)
         # PEG checks the distance of the observation the step led to (agent.md 5.1), go phase only.
-        return jax.lax.cond(stream.go_active,
+        return lazy_cond(stream.go_active,
                             lambda: agent.goal_distance(agent_state, latent, stream.goal, next_obs),
                             lambda: jnp.asarray(jnp.inf, jnp.float32))
 
@@ -277,7 +278,7 @@ def _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream
         stream, schedule, planner = operand
         return stream, schedule, planner, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
-    return jax.lax.cond(new_goal, choose_for_segment, keep, (stream, schedule, planner))
+    return lazy_cond(new_goal, choose_for_segment, keep, (stream, schedule, planner))
 
 
 def collect_chunk(env, agent, cfg: CollectConfig, planner_cfg: PlannerConfig, schedule_cfg: ScheduleConfig,

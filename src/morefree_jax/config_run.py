@@ -49,6 +49,9 @@ class RunConfig:
     visitation_bins: bins per axis of the replay's xy visitation histogram logged at each evaluation.
     checkpoint_minutes: also checkpoint after this much wall-clock time (slow machines); results do not
     depend on where checkpoints fall, so it may change on resume.
+    seed_axis: how the seeds of a multi-seed run share one program (programs.py): "map" (a loop inside the
+    program, bit-exact single-seed numbers), "vmap" (batched, for accelerators), "auto" (map on CPU, vmap
+    on GPU/TPU); it may change on resume.
     """
 
     env: str = "point_umaze"
@@ -69,6 +72,7 @@ class RunConfig:
     subgoal_threshold: float | None = None
     visitation_bins: int = 50
     checkpoint_minutes: float = 10.0
+    seed_axis: Literal["auto", "map", "vmap"] = "auto"
 
     def __post_init__(self):
         if self.total_steps is not None and self.total_steps <= 0:  # None: the task's budget
@@ -284,7 +288,7 @@ class Config:
 # group of the learner without the "agent." prefix (wm.deter=64).
 SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
 # Keys that may change when a run dir is resumed: extending a run's step budget continues it.
-RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes")
+RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes", "run.seed_axis")
 # Filled from the task's default_config(); a run needs them resolved (resolve_config does it).
 TASK_RUN_KEYS = ("total_steps", "train_every", "subgoal_threshold")
 

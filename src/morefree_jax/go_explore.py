@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from morefree_jax.batching import lazy_cond
 from morefree_jax.planner import PlannerState
 
 SCHEDULE_KINDS = ("planner", "back_and_forth", "episodic_planner", "eval_only")
@@ -174,7 +175,8 @@ def next_chunk_goal(
     search_fn(planner_state, key) -> (goal, planner_state, metrics): a full goal search (e.g. plan_goal from
     start_search(config, current obs) with the agent's score). It runs on every planner chunk (a fresh
     optimisation each time, paper appendix on reset-free PEG) and is skipped under lax.cond on task chunks,
-    whose planner metrics are zeros of the same structure. planner_state.searches counts the searches.
+    whose planner metrics are zeros of the same structure (batching.lazy_cond: lazy under vmap too).
+    planner_state.searches counts the searches.
     Returns (goal, GoalChoice, schedule_state, planner_state, metrics).
     """
     key_type, key_search = jax.random.split(key)
@@ -189,8 +191,8 @@ def next_chunk_goal(
         zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), metric_shapes)
         return jnp.zeros(goal_shape.shape, goal_shape.dtype), state, zeros
 
-    planner_goal, planner_state, planner_metrics = jax.lax.cond(choice.search, search, no_search,
-                                                                planner_state)
+    # lazy_cond: vmapped over seeds, the search still runs only on chunks where some seed needs it.
+    planner_goal, planner_state, planner_metrics = lazy_cond(choice.search, search, no_search, planner_state)
     goal, schedule_state = commit_goal(config, schedule_state, choice, eval_goal, initial_goal, planner_goal)
     metrics = {**schedule_metrics(choice, schedule_state), **planner_metrics}
     return goal, choice, schedule_state, planner_state, metrics

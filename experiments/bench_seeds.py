@@ -1,0 +1,167 @@
+"""Seeds in one program (`make bench`, section `seeds`): per-seed throughput of a whole `cpu` run at 1, 2 and
+4 seeds, against two single-seed processes sharing the machine; compile times; the `paper` train step at 1
+and 2 seeds; achieved FLOP/s next to a matmul peak measured in the same run.
+
+    python -m experiments.bench --only seeds
+    python -m experiments.bench_seeds --single 8   # one single-seed measurement as a JSON line (used above)
+
+Every ratio divides two figures of this same run (the machine's speed varies from day to day).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+
+import envs_mjx
+from experiments.bench_core import _inputs, matmul_peak, train_step_flops
+from morefree_jax.config_run import resolve_config
+from morefree_jax.programs import compile_programs
+from morefree_jax.run_fns import make_run_fns
+
+SECTION = "seeds"
+
+
+def _row(name, value, unit, note=""):
+    return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
+
+
+def _timed(fn, *args):
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - start
+
+
+def run_throughput(num_seeds: int, seed_axis: str, chunks: int) -> dict:
+    """Compile seconds (collect + train) and mean chunk seconds of a cpu-preset morefree point_umaze run of
+    `num_seeds` seeds in one program, after its prefill and one warm-up chunk."""
+    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu"], envs_mjx.ALL_ENVS)
+    fns = make_run_fns(config, envs_mjx.make("point_umaze"))
+    programs = compile_programs(fns, num_seeds, seed_axis=seed_axis)
+    state = programs.prefill(programs.init(jnp.stack([jax.random.PRNGKey(s) for s in range(num_seeds)])))
+    compile_s = 0.0
+    compiled = {}
+    for name in ("collect", "train_updates"):
+        start = time.perf_counter()
+        compiled[name] = getattr(programs, name).lower(state).compile()
+        compile_s += time.perf_counter() - start
+        state, _ = compiled[name](state)  # warm-up chunk
+    collect_s = train_s = 0.0
+    for _ in range(chunks):
+        (state, _), seconds = _timed(compiled["collect"], state)
+        collect_s += seconds
+        (state, _), seconds = _timed(compiled["train_updates"], state)
+        train_s += seconds
+    searches = jax.device_get(state.planner.searches).tolist()
+    return {"seeds": num_seeds, "compile_s": compile_s, "collect_s": collect_s / chunks,
+            "train_s": train_s / chunks, "chunk_len": fns.chunk_len, "updates": fns.updates_per_chunk,
+            "searches": searches, "chunks": chunks}
+
+
+def _per_seed_steps(result: dict) -> float:
+    return result["seeds"] * result["chunk_len"] / (result["collect_s"] + result["train_s"])
+
+
+def _two_processes(chunks: int) -> float:
+    """Per-seed env steps/s of two single-seed processes running at the same time on this machine."""
+    command = [sys.executable, "-m", "experiments.bench_seeds", "--single", str(chunks)]
+    children = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
+                for _ in range(2)]
+    results = [json.loads(child.communicate()[0].strip().splitlines()[-1]) for child in children]
+    return sum(_per_seed_steps(result) for result in results) / 2
+
+
+def _cpu_flops_per_update() -> float:
+    agent, state, batch, pools = _inputs("cpu")
+    return train_step_flops(agent.config, agent.spec, state, batch, pools, jax.random.PRNGKey(2))
+
+
+def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vmap"),
+             processes: bool = True) -> list[dict]:
+    flops = _cpu_flops_per_update()
+    rows, base = [], None
+    for seed_axis in modes:
+        for num_seeds in seed_counts:
+            if seed_axis == "vmap" and num_seeds == 1:
+                continue  # one seed runs the same unbatched program in both modes
+            result = run_throughput(num_seeds, seed_axis, chunks)
+            per_seed = _per_seed_steps(result)
+            base = per_seed if num_seeds == 1 else base
+            achieved = flops * result["updates"] * num_seeds / result["train_s"]
+            name = f"cpu_run/{seed_axis}_{num_seeds}_seeds"
+            rows += [
+                _row(f"{name}_per_seed_steps_per_s", per_seed, "steps/s",
+                     f"{per_seed / base:.2f}x of one seed; {chunks} morefree chunks, searches per seed "
+                     f"{result['searches']}; collect {result['collect_s']:.2f} s, "
+                     f"train {result['train_s']:.2f} s"),
+                _row(f"{name}_compile_s", result["compile_s"], "s", "collect + train_updates, all seeds"),
+                _row(f"{name}_train_flops", achieved / 1e9, "GFLOP/s",
+                     f"{achieved / peak:.0%} of the matmul peak"),
+            ]
+    if not processes:
+        return rows
+    separate = _two_processes(chunks)
+    rows.append(_row("cpu_run/two_processes_per_seed_steps_per_s", separate, "steps/s",
+                     f"{separate / base:.2f}x of one seed alone: two single-seed processes at once"))
+    return rows
+
+
+def paper_rows(peak: float, reps: int = 2) -> list[dict]:
+    """The paper-size train step for 1 and 2 seeds (vmap and map) on one batch per seed."""
+    agent, state, batch, pools = _inputs("paper")
+    flops = train_step_flops(agent.config, agent.spec, state, batch, pools, jax.random.PRNGKey(2))
+    rows, base = [], None
+    def mapped(*args):
+        return jax.lax.map(lambda per_seed: agent.train_step(*per_seed), args)
+
+    cases = (("1_seed", 1, agent.train_step), ("vmap_2_seeds", 2, jax.vmap(agent.train_step)),
+             ("map_2_seeds", 2, mapped))
+    for label, num_seeds, step in cases:
+        if num_seeds == 1:
+            args = (state, batch, pools, jax.random.PRNGKey(2))
+        else:
+            stacked = jax.tree.map(lambda x, n=num_seeds: jnp.stack([x] * n), (state, batch, pools))
+            args = (*stacked, jax.random.split(jax.random.PRNGKey(2), num_seeds))
+        start = time.perf_counter()
+        compiled = jax.jit(step).lower(*args).compile()
+        compile_s = time.perf_counter() - start
+        jax.block_until_ready(compiled(*args))
+        seconds = min(_timed(compiled, *args)[1] for _ in range(reps))
+        per_seed = seconds / num_seeds
+        base = per_seed if num_seeds == 1 else base
+        achieved = flops * num_seeds / seconds
+        rows += [_row(f"paper/train_step_{label}_per_seed_s", per_seed, "s",
+                      f"{base / per_seed:.2f}x the per-seed throughput of one seed; "
+                      f"compile {compile_s:.0f} s"),
+                 _row(f"paper/train_step_{label}_flops", achieved / 1e9, "GFLOP/s",
+                      f"{achieved / peak:.0%} of the matmul peak")]
+    return rows
+
+
+def run(quick: bool = False) -> list[dict]:
+    peak = matmul_peak(1024 if quick else 2048)
+    rows = [_row("matmul_peak", peak / 1e9, "GFLOP/s", "this run's reference for the FLOP/s rows")]
+    if quick:
+        return rows + run_rows(chunks=1, peak=peak, seed_counts=(1,), modes=("map",), processes=False)
+    return rows + run_rows(chunks=8, peak=peak) + paper_rows(peak)
+
+
+if __name__ == "__main__":
+    from morefree_jax import runtime
+
+    runtime.configure()  # before any JAX computation
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--single", type=int, metavar="CHUNKS", help="one single-seed run; print JSON")
+    args = parser.parse_args()
+    if args.single:
+        print(json.dumps(run_throughput(1, "map", args.single)))
+    else:
+        for row in run():
+            print(f"{row['name']:52} {row['value']:10.3f} {row['unit']:8} {row['note']}", flush=True)
