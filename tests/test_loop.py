@@ -1,5 +1,5 @@
-"""Whole runs (debug preset, point_umaze): files, every variant, exact resume after SIGKILL, bad
-checkpoints, config refusal, Ctrl-C, bad CLI input.
+"""Whole runs (debug preset, tabletop: see loop_helpers.RUN_ENV): files, every variant, exact resume after
+SIGKILL, bad checkpoints, config refusal, Ctrl-C, bad CLI input.
 
 Runs share compiled programs through loop_helpers.debug_programs (loop.train(..., programs=...) reuses
 them across run dirs and budgets); the CLI subprocesses share a persistent compilation cache.
@@ -28,11 +28,11 @@ from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
 from morefree_jax.run_fns import keep_if_finite
 from morefree_jax.variants import VARIANTS
-from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
+from tests.loop_helpers import CHUNK, COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-PREFILL = 20  # DEBUG_ARGS: prefill=20, then chunks of 100 steps
-TWO_CHUNKS, THREE_CHUNKS = PREFILL + 200, PREFILL + 300
+PREFILL = 20  # DEBUG_ARGS: prefill=20, then chunks of CHUNK steps
+TWO_CHUNKS, THREE_CHUNKS = PREFILL + 2 * CHUNK, PREFILL + 3 * CHUNK
 
 
 def train(agent: str, run_dir, total_steps: int, **changes):
@@ -62,31 +62,31 @@ def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
     config = json.loads((tmp_path / "config.json").read_text())
     assert config["run"]["agent"] == agent and config["schedule"]["kind"] == VARIANTS[agent].schedule_kind
     records = read_metrics(tmp_path / "metrics.jsonl")
-    assert [r["step"] for r in records if "wm/loss" in r] == [PREFILL + 100, TWO_CHUNKS]
+    assert [r["step"] for r in records if "wm/loss" in r] == [PREFILL + CHUNK, TWO_CHUNKS]
     assert any("eval/success" in r for r in records) and any("visitation/task_relevant" in r for r in records)
     assert all(np.isfinite(v) for r in records for v in r.values())
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
     assert list((tmp_path / "plots").glob("visitation_*.npy"))
     assert sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit()) == [
-        PREFILL + 100, TWO_CHUNKS]
+        PREFILL + CHUNK, TWO_CHUNKS]
     step, state = final_state(agent, tmp_path)
     assert step == TWO_CHUNKS and int(state.stream.steps) == TWO_CHUNKS == int(state.replay.count)
-    assert int(state.agent.updates) == 5 + 2 * 5  # pretrain + 2 chunks of 100 / train_every 20
+    assert int(state.agent.updates) == 5 + 2 * CHUNK // 20  # pretrain + 2 chunks / train_every 20
 
 
 def _start_cli(run_dir, steps: int) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
     command = [sys.executable, "-m", "experiments.train", *DEBUG_ARGS, "agent=morefree", f"steps={steps}",
-               "checkpoint_every=200", f"run_dir={run_dir}"]
+               "checkpoint_every=2 * CHUNK", f"run_dir={run_dir}"]
     return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
 def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
     full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
-    train("morefree", full_dir, THREE_CHUNKS, checkpoint_every=200)
+    train("morefree", full_dir, THREE_CHUNKS, checkpoint_every=2 * CHUNK)
     # A CLI run that would go on for 10 chunks is SIGKILLed once its checkpoint after chunk 2 is complete.
-    process = _start_cli(killed_dir, PREFILL + 1000)
+    process = _start_cli(killed_dir, PREFILL + 10 * CHUNK)
     manifest = killed_dir / "checkpoints" / str(TWO_CHUNKS) / "files.json"
     deadline = time.monotonic() + 600
     while not manifest.exists() and process.poll() is None and time.monotonic() < deadline:
@@ -97,7 +97,7 @@ def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
     steps = sorted(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
     assert steps == [TWO_CHUNKS], f"killed too late: {steps}"
     # Resume (same config, longer budget ignored) and run one more chunk.
-    summary = train("morefree", killed_dir, THREE_CHUNKS, checkpoint_every=200)
+    summary = train("morefree", killed_dir, THREE_CHUNKS, checkpoint_every=2 * CHUNK)
     assert summary.env_steps == THREE_CHUNKS
     step_a, state_a = final_state("morefree", full_dir)
     step_b, state_b = final_state("morefree", killed_dir)
@@ -115,17 +115,17 @@ def test_corrupted_checkpoint_is_named_and_the_previous_one_used(tmp_path, capsy
     bad_dir = tmp_path / "checkpoints" / str(TWO_CHUNKS)
     biggest = max((p for p in bad_dir.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
     biggest.write_bytes(biggest.read_bytes()[: biggest.stat().st_size // 2])  # truncated on disk
-    summary = train("morefree", tmp_path, TWO_CHUNKS + 100)
+    summary = train("morefree", tmp_path, TWO_CHUNKS + CHUNK)
     err = capsys.readouterr().err
-    assert str(biggest) in err and f"using checkpoint {PREFILL + 100} instead" in err
+    assert str(biggest) in err and f"using checkpoint {PREFILL + CHUNK} instead" in err
     assert (tmp_path / "checkpoints_bad" / str(TWO_CHUNKS)).exists()
-    assert summary.env_steps == TWO_CHUNKS + 100  # continued from 120: two more chunks
+    assert summary.env_steps == TWO_CHUNKS + CHUNK  # continued from the first chunk: two more
     assert [r["step"] for r in read_metrics(tmp_path / "metrics.jsonl") if "wm/loss" in r] == [
-        PREFILL + 100, TWO_CHUNKS, TWO_CHUNKS + 100]
+        PREFILL + CHUNK, TWO_CHUNKS, TWO_CHUNKS + CHUNK]
 
 
 def test_run_dir_with_a_different_config_is_refused(tmp_path):
-    train("morefree", tmp_path, PREFILL + 100)
+    train("morefree", tmp_path, PREFILL + CHUNK)
     before = (tmp_path / "metrics.jsonl").read_text()
     other = debug_config("morefree", "wm.deter=16", f"run_dir={tmp_path}", "steps=220")
     with pytest.raises(ConfigMismatchError, match=r"agent\.wm\.deter: 32 -> 16"):
@@ -171,7 +171,7 @@ def test_bad_cli_input_exit_code_in_a_subprocess():
 
 
 def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
-    train("morefree", tmp_path, PREFILL + 100)
+    train("morefree", tmp_path, PREFILL + CHUNK)
     video = tmp_path / "episode.gif"
     command = [sys.executable, "-m", "experiments.evaluate", f"run_dir={tmp_path}", "episodes=3",
                f"video={video}"]
@@ -179,7 +179,7 @@ def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
            "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE}
     result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert f"checkpoint step {PREFILL + 100}, 3 episodes" in result.stdout
+    assert f"checkpoint step {PREFILL + CHUNK}, 3 episodes" in result.stdout
     goal_row = next(line for line in result.stdout.splitlines() if line.strip().startswith("0.00, 8.00"))
     assert goal_row.split()[2] == "3"  # point_umaze: one goal (0, 8), all 3 episodes
     written = pathlib.Path(result.stdout.split("video: ")[1].split()[0])

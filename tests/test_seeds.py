@@ -1,12 +1,12 @@
-"""Several seeds in one program (debug preset, point_umaze): per-seed run dirs, equality with single-seed
-runs, exact resume of a group after SIGKILL, vmap with one trace, sharding over 2 forced CPU devices, bad
-seed lists.
+"""Several seeds in one program (debug preset, tabletop: see loop_helpers.RUN_ENV): per-seed run dirs,
+equality with single-seed runs, exact resume of a group after SIGKILL, vmap with one trace, sharding over
+2 forced CPU devices, bad seed lists.
 
 Tolerances: with seed_axis "map" (the CPU default) seed k runs the single-seed computation itself, so the
 test asks for bit-equal states and metrics. Batched (vmap) or sharded programs round differently (XLA's
-batched and partitioned kernels, ~1e-7 relative), and PointUMaze's contacts amplify that within tens of
-steps, so those are compared before the first chunk of collection: initial state, prefill, a chunk of
-updates, to 1e-5.
+batched and partitioned kernels, ~1e-7 relative), and a contact-rich stream (PointUMaze, measured)
+amplifies that within tens of steps, so those are compared before the first chunk of collection: initial
+state, prefill, a chunk of updates, to 1e-5.
 """
 
 from __future__ import annotations
@@ -32,18 +32,18 @@ from morefree_jax.logger import read_metrics
 from morefree_jax.loop import restore_group
 from morefree_jax.programs import compile_programs, seed_slice
 from morefree_jax.seeds import parse_seeds
-from tests.loop_helpers import COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
+from tests.loop_helpers import CHUNK, COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL = 20  # DEBUG_ARGS
-THREE_CHUNKS = PREFILL + 300
+THREE_CHUNKS = PREFILL + 3 * CHUNK
 SEEDS = (0, 1)
 
 
 def _cli(run_dir, steps: int, *extra: str) -> list[str]:
     debug_args = [arg for arg in DEBUG_ARGS if not arg.startswith("seed=")]
     return [sys.executable, "-m", "experiments.train", *debug_args, "agent=morefree", "seeds=0,1",
-            f"steps={steps}", "checkpoint_every=200", f"run_dir={run_dir}", *extra]
+            f"steps={steps}", f"checkpoint_every={2 * CHUNK}", f"run_dir={run_dir}", *extra]
 
 
 def _cli_env(**extra) -> dict:
@@ -90,12 +90,12 @@ def test_each_seed_writes_its_own_run_dir(two_seed_run):
         records = read_metrics(seed_dir / "metrics.jsonl")
         assert any("eval/success" in r for r in records) and list((seed_dir / "tb").iterdir())
         assert sorted(int(p.name) for p in (seed_dir / "checkpoints").iterdir() if p.name.isdigit()) == [
-            PREFILL + 200, THREE_CHUNKS]
+            PREFILL + 2 * CHUNK, THREE_CHUNKS]
     assert _records(two_seed_run / "seed0") != _records(two_seed_run / "seed1")
 
 
 def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
-    config = debug_config("morefree", "seed=1", f"steps={THREE_CHUNKS}", "checkpoint_every=200",
+    config = debug_config("morefree", "seed=1", f"steps={THREE_CHUNKS}", f"checkpoint_every={2 * CHUNK}",
                           f"run_dir={tmp_path}")
     loop.train(config, programs=debug_programs("morefree"), progress="off")
     step_group, state_group = _checkpoint(two_seed_run / "seed1", _template())
@@ -106,9 +106,9 @@ def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
 
 
 def test_sigkill_during_a_two_seed_run_resumes_bit_exact_for_both(two_seed_run, tmp_path):
-    process = subprocess.Popen(_cli(tmp_path, PREFILL + 1000), cwd=REPO, env=_cli_env(),
+    process = subprocess.Popen(_cli(tmp_path, PREFILL + 10 * CHUNK), cwd=REPO, env=_cli_env(),
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    manifest = tmp_path / "seed1" / "checkpoints" / str(PREFILL + 200) / "files.json"
+    manifest = tmp_path / "seed1" / "checkpoints" / str(PREFILL + 2 * CHUNK) / "files.json"
     deadline = time.monotonic() + 600
     while not manifest.exists() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
