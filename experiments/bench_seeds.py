@@ -3,7 +3,7 @@
 and 2 seeds; achieved FLOP/s next to a matmul peak measured in the same run.
 
     python -m experiments.bench --only seeds
-    python -m experiments.bench_seeds --single 8   # one single-seed measurement as a JSON line (used above)
+    python -m experiments.bench_seeds --run 2 map 8   # one measurement (2 seeds, lax.map, 8 chunks) as JSON
 
 Every ratio divides two figures of this same run (the machine's speed varies from day to day).
 """
@@ -69,13 +69,25 @@ def _per_seed_steps(result: dict) -> float:
     return result["seeds"] * result["chunk_len"] / (result["collect_s"] + result["train_s"])
 
 
+def _child(*arguments: str) -> subprocess.Popen:
+    """A measurement in a fresh process (its own memory and compile caches); it prints one JSON line."""
+    command = [sys.executable, "-m", "experiments.bench_seeds", *arguments]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=os.environ.copy())
+
+
+def _result(child: subprocess.Popen):
+    out, err = child.communicate()
+    if child.returncode != 0:
+        tail = err.strip()[-300:]
+        raise RuntimeError(f"bench child {child.args[3:]} failed (exit {child.returncode}): {tail}")
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def _two_processes(chunks: int) -> float:
     """Per-seed env steps/s of two single-seed processes running at the same time on this machine."""
-    command = [sys.executable, "-m", "experiments.bench_seeds", "--single", str(chunks)]
-    children = [subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
-                for _ in range(2)]
-    results = [json.loads(child.communicate()[0].strip().splitlines()[-1]) for child in children]
-    return sum(_per_seed_steps(result) for result in results) / 2
+    children = [_child("--run", "1", "map", str(chunks)) for _ in range(2)]
+    return sum(_per_seed_steps(_result(child)) for child in children) / 2
 
 
 def _cpu_flops_per_update() -> float:
@@ -84,15 +96,21 @@ def _cpu_flops_per_update() -> float:
 
 
 def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vmap"),
-             processes: bool = True) -> list[dict]:
+             processes: bool = True, show=None) -> list[dict]:
     flops = _cpu_flops_per_update()
     rows, base = [], None
     for seed_axis in modes:
         for num_seeds in seed_counts:
             if seed_axis == "vmap" and num_seeds == 1:
                 continue  # one seed runs the same unbatched program in both modes
-            result = run_throughput(num_seeds, seed_axis, chunks)
+            try:
+                result = _result(_child("--run", str(num_seeds), seed_axis, str(chunks)))
+            except RuntimeError as error:  # e.g. out of memory: the row says so, the others still run
+                rows.append(_row(f"cpu_run/{seed_axis}_{num_seeds}_seeds_failed", 0.0, "", str(error)))
+                continue
             per_seed = _per_seed_steps(result)
+            if show is not None:
+                show(result)
             base = per_seed if num_seeds == 1 else base
             achieved = flops * result["updates"] * num_seeds / result["train_s"]
             name = f"cpu_run/{seed_axis}_{num_seeds}_seeds"
@@ -150,7 +168,11 @@ def run(quick: bool = False) -> list[dict]:
     rows = [_row("matmul_peak", peak / 1e9, "GFLOP/s", "this run's reference for the FLOP/s rows")]
     if quick:
         return rows + run_rows(chunks=1, peak=peak, seed_counts=(1,), modes=("map",), processes=False)
-    return rows + run_rows(chunks=8, peak=peak) + paper_rows(peak)
+    try:  # the paper learner at 2 seeds needs much memory: a child process, so a failure is one row
+        paper = _result(_child("--paper", str(peak)))
+    except RuntimeError as error:
+        paper = [_row("paper/train_step_seeds_failed", 0.0, "", str(error))]
+    return rows + run_rows(chunks=8, peak=peak) + paper
 
 
 if __name__ == "__main__":
@@ -158,10 +180,16 @@ if __name__ == "__main__":
 
     runtime.configure()  # before any JAX computation
     parser = argparse.ArgumentParser()
-    parser.add_argument("--single", type=int, metavar="CHUNKS", help="one single-seed run; print JSON")
+    parser.add_argument("--run", nargs=3, metavar=("SEEDS", "AXIS", "CHUNKS"),
+                        help="one measurement of run_throughput; print it as JSON")
+    parser.add_argument("--paper", type=float, metavar="PEAK", help="the paper rows as JSON (peak in FLOP/s)")
     args = parser.parse_args()
-    if args.single:
-        print(json.dumps(run_throughput(1, "map", args.single)))
+    if args.paper:
+        print(json.dumps(paper_rows(args.paper)))
+    elif args.run:
+        print(json.dumps(run_throughput(int(args.run[0]), args.run[1], int(args.run[2]))))
     else:
-        for row in run():
+        peak = matmul_peak()
+        print(f"matmul peak {peak / 1e9:.0f} GFLOP/s", flush=True)
+        for row in run_rows(chunks=4, peak=peak, show=lambda result: print(json.dumps(result), flush=True)):
             print(f"{row['name']:52} {row['value']:10.3f} {row['unit']:8} {row['note']}", flush=True)
