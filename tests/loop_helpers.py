@@ -7,7 +7,10 @@ import functools
 import os
 import pathlib
 import re
+import signal
+import subprocess
 import tempfile
+import time
 
 import jax
 
@@ -78,3 +81,14 @@ def hlo_has_callback(jitted, *args) -> bool:
     (only the targets are searched: op metadata names source functions, which may say "callback")."""
     text = jitted.lower(*args).compile().as_text()
     return any("callback" in target.lower() for target in re.findall(r'custom_call_target="([^"]+)"', text))
+
+
+def sigkill_once_written(process: subprocess.Popen, path, timeout_s: float = 600) -> None:
+    """SIGKILLs a running CLI process as soon as `path` exists (e.g. a checkpoint's files.json); fails with
+    the process's stderr if it ended first."""
+    deadline = time.monotonic() + timeout_s
+    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert process.poll() is None, process.stderr.read().decode()[-2000:]
+    process.send_signal(signal.SIGKILL)
+    process.wait()

@@ -28,7 +28,14 @@ from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
 from morefree_jax.run_fns import keep_if_finite
 from morefree_jax.variants import VARIANTS
-from tests.loop_helpers import CHUNK, COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
+from tests.loop_helpers import (
+    CHUNK,
+    COMPILATION_CACHE,
+    DEBUG_ARGS,
+    debug_config,
+    debug_programs,
+    sigkill_once_written,
+)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL = 20  # DEBUG_ARGS: prefill=20, then chunks of CHUNK steps
@@ -88,13 +95,7 @@ def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
     train("morefree", full_dir, THREE_CHUNKS, checkpoint_every=2 * CHUNK)
     # A CLI run that would go on for 10 chunks is SIGKILLed once its checkpoint after chunk 2 is complete.
     process = _start_cli(killed_dir, PREFILL + 10 * CHUNK)
-    manifest = killed_dir / "checkpoints" / str(TWO_CHUNKS) / "files.json"
-    deadline = time.monotonic() + 600
-    while not manifest.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert process.poll() is None, process.stderr.read().decode()[-2000:]
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    sigkill_once_written(process, killed_dir / "checkpoints" / str(TWO_CHUNKS) / "files.json")
     steps = sorted(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
     assert steps == [TWO_CHUNKS], f"killed too late: {steps}"
     # Resume (same config, longer budget ignored) and run one more chunk.

@@ -14,10 +14,8 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import signal
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +30,14 @@ from morefree_jax.logger import read_metrics
 from morefree_jax.loop import restore_group
 from morefree_jax.programs import compile_programs, seed_slice
 from morefree_jax.seeds import parse_seeds
-from tests.loop_helpers import CHUNK, COMPILATION_CACHE, DEBUG_ARGS, debug_config, debug_programs
+from tests.loop_helpers import (
+    CHUNK,
+    COMPILATION_CACHE,
+    DEBUG_ARGS,
+    debug_config,
+    debug_programs,
+    sigkill_once_written,
+)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL = 20  # DEBUG_ARGS
@@ -108,13 +113,8 @@ def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
 def test_sigkill_during_a_two_seed_run_resumes_bit_exact_for_both(two_seed_run, tmp_path):
     process = subprocess.Popen(_cli(tmp_path, PREFILL + 10 * CHUNK), cwd=REPO, env=_cli_env(),
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    manifest = tmp_path / "seed1" / "checkpoints" / str(PREFILL + 2 * CHUNK) / "files.json"
-    deadline = time.monotonic() + 600
-    while not manifest.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert process.poll() is None, process.stderr.read().decode()[-2000:]
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    checkpoint = tmp_path / "seed1" / "checkpoints" / str(PREFILL + 2 * CHUNK)
+    sigkill_once_written(process, checkpoint / "files.json")
     resumed = subprocess.run(_cli(tmp_path, THREE_CHUNKS), cwd=REPO, env=_cli_env(), capture_output=True,
                              text=True, timeout=900)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
