@@ -15,7 +15,14 @@ RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
 # jemalloc preloaded where installed (libjemalloc2): ~15% faster learner steps (see morefree_jax/runtime.py).
 ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocator_env()" 2>/dev/null)
 
-.PHONY: install test test-slow lint bench clean train evaluate
+# make experiment: TASK (default ENV), AGENTS, SEEDS (default 0,1,2). make plots: RUNS, OUT, TASK (default all).
+TASK ?=
+AGENTS ?= morefree,rf_peg
+DEFAULT_SEEDS := 0,1,2
+RUNS ?= runs
+OUT ?= results
+
+.PHONY: install test test-slow lint bench clean train evaluate experiment plots
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
 CUDA ?=
@@ -43,6 +50,15 @@ train:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.train env=$(ENV) agent=$(AGENT) preset=$(PRESET) \
 		$(if $(SEEDS),seeds=$(SEEDS),seed=$(SEED)) \
 		$(if $(STEPS),steps=$(STEPS)) $(ARGS)
+
+# Each agent's seeds in one program (a process per agent, one per core); re-run to resume; then the plots.
+experiment:
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.experiment task=$(or $(TASK),$(ENV)) agents=$(AGENTS) \
+		seeds=$(or $(SEEDS),$(DEFAULT_SEEDS)) $(if $(STEPS),steps=$(STEPS)) preset=$(PRESET) $(ARGS)
+
+# Figures (PNG, SVG) and results tables of every run dir below RUNS, written to OUT.
+plots:
+	PYTHONPATH=src:. $(PY) -m experiments.plots $(RUNS) --out $(OUT) $(if $(TASK),--task $(TASK))
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)

@@ -7,6 +7,7 @@
     logger.log_visitation(step, task_relevant_fraction, xy_histogram)
     logger.close()
 
+provenance.jsonl gets one line per start or resume (step, code commit, host, time; provenance.py).
 metrics.jsonl holds one JSON object per `log` call: "step", the caller's flat metrics and the wall-clock
 fields, all named "time/..." (compare runs on the other keys). Resume contract: the loop logs a step's
 metrics BEFORE it saves that step's checkpoint; on resume from the checkpoint at step S, lines with
@@ -21,13 +22,17 @@ import json
 import math
 import os
 import pathlib
+import socket
 import sys
 import time
 from typing import Any
 
 import numpy as np
 
+from morefree_jax.provenance import code_version
+
 PROGRESS_MODES = ("auto", "bar", "lines", "off")
+PROVENANCE_FILE = "provenance.jsonl"  # one line per start or resume: step, code commit, host, time
 
 
 def _scalar(name: str, value: Any) -> float | int | bool:
@@ -75,6 +80,7 @@ class RunLogger:
         self.total_steps = total_steps
         self.metrics_path = self.run_dir / "metrics.jsonl"
         self._elapsed_offset = self._truncate_metrics(resume_step)
+        self._record_start(resume_step)
         self._metrics_file = open(self.metrics_path, "a")  # noqa: SIM115 - kept open for the run
         self._start = time.perf_counter()
         self._last_step = resume_step or 0
@@ -97,6 +103,13 @@ class RunLogger:
             from tqdm import tqdm
 
             self._bar = tqdm(total=total_steps, initial=resume_step or 0, unit="step", dynamic_ncols=True)
+
+    def _record_start(self, resume_step: int | None) -> None:
+        """Appends this start (step, code commit, host, time) to provenance.jsonl (never truncated)."""
+        line = {"start_step": int(resume_step or 0), "resumed": resume_step is not None, **code_version(),
+                "host": socket.gethostname(), "time": time.time()}
+        with open(self.run_dir / PROVENANCE_FILE, "a") as file:
+            file.write(json.dumps(line) + "\n")
 
     def _truncate_metrics(self, resume_step: int | None) -> float:
         """Keeps the lines with step <= resume_step (none for a fresh run); returns the last elapsed time."""
@@ -159,6 +172,15 @@ class RunLogger:
             "visitation/occupied_cells": float(np.mean(histogram > 0)),
             "visitation/entropy": float(entropy),
         })
+
+    def log_back_starts(self, step: int, xy, stream_step) -> None:
+        """Saves the locations before each stored successful back chunk (back_starts.py) as
+        plots/back_starts.npz (xy (n, 100, 2), stream_step (n,), step), replaced atomically at each call."""
+        path = self.plots_dir / "back_starts.npz"
+        temporary = path.with_name(path.name + ".tmp.npz")
+        np.savez(temporary, xy=np.asarray(xy, np.float32), stream_step=np.asarray(stream_step, np.int64),
+                 step=np.int64(step))
+        os.replace(temporary, path)
 
     # ---- timers --------------------------------------------------------------------------------
     @contextlib.contextmanager

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 
 import envs_mjx
+from morefree_jax.back_starts import stored_back_starts
 from morefree_jax.checkpoint import CheckpointError, RunCheckpointer, check_run_dir_config, latest_valid
 from morefree_jax.config_run import RESUMABLE_KEYS, Config, ConfigError, config_from_dict, config_to_dict
 from morefree_jax.logger import RunLogger
@@ -160,8 +161,16 @@ class _Driver:
                 records[index].update(logger.log(steps, seed_slice(eval_metrics, index)))
                 records[index].update(logger.log_visitation(steps, float(fractions[index]),
                                                             histograms[index]))
+                self.save_back_starts(logger, seed_slice(state.back_starts, index), steps)
         self.maybe_checkpoint(checkpointers, state, previous, steps)
         return records
+
+    @staticmethod
+    def save_back_starts(logger: RunLogger, starts, steps: int) -> None:
+        """plots/back_starts.npz once a back chunk has succeeded (agents with Back-and-Forth Go-Explore)."""
+        xy, stream_step = stored_back_starts(starts)
+        if len(stream_step):
+            logger.log_back_starts(steps, xy, stream_step)
 
     def maybe_checkpoint(self, checkpointers, state, previous: int, steps: int) -> None:
         """At multiples of checkpoint_every, or when checkpoint_minutes have passed since the last save."""

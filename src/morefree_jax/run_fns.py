@@ -25,10 +25,11 @@ from flax import struct
 
 from morefree_jax import replay as replay_lib
 from morefree_jax.agent import Agent, AgentState, EnvSpec, make_agent
+from morefree_jax.back_starts import BackStarts, init_back_starts, record_back_start
 from morefree_jax.collect import StreamState, collect_chunk, collect_config_for, init_stream, prefill_stream
 from morefree_jax.config_run import TASK_RUN_KEYS, Config, ConfigError
 from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation
-from morefree_jax.go_explore import GOAL_TYPE_NAMES, ScheduleState, init_schedule
+from morefree_jax.go_explore import GOAL_TYPE_NAMES, GoalType, ScheduleState, init_schedule
 from morefree_jax.imagination import GoalPools
 from morefree_jax.planner import PlannerState, start_search
 from morefree_jax.variants import variant
@@ -45,7 +46,8 @@ COMPILED_RUN_KEYS = ("env", "agent", "prefill", "train_every", "eval_episodes", 
 @struct.dataclass
 class RunState:
     """Everything a run needs to continue exactly. go_counts (2, 3): chunks and go phases that reached
-    their goal (task success), per goal type (planner, eval, initial)."""
+    their goal (task success), per goal type (planner, eval, initial). back_starts: where the successful
+    back chunks started (back_starts.py; analysis only, nothing reads it back)."""
 
     agent: AgentState
     replay: replay_lib.ReplayState
@@ -54,6 +56,7 @@ class RunState:
     schedule: ScheduleState
     go_counts: jax.Array
     key: jax.Array
+    back_starts: BackStarts
 
 
 class RunFns(NamedTuple):
@@ -135,6 +138,7 @@ class _Parts:
             schedule=init_schedule(goal_size),
             go_counts=jnp.zeros((2, 3), jnp.float32),
             key=key_run,
+            back_starts=init_back_starts(),
         )
 
     def prefill(self, state: RunState) -> RunState:
@@ -155,8 +159,11 @@ class _Parts:
         rates = go_counts[1] / jnp.maximum(go_counts[0], 1.0)
         metrics.update({f"go/reach_rate_{name}": rates[i] for i, name in enumerate(GOAL_TYPE_NAMES)})
         metrics["planner/searches"] = planner.searches.astype(jnp.float32)
+        successful_back = (metrics["goal/type"] == GoalType.INITIAL) & (metrics["go/reached"] > 0)
+        back_starts = record_back_start(state.back_starts, self.env, state.replay, successful_back)
         state = state.replace(replay=replay_lib.add(state.replay, *transitions), stream=stream,
-                              schedule=schedule, planner=planner, go_counts=go_counts, key=key)
+                              schedule=schedule, planner=planner, go_counts=go_counts, key=key,
+                              back_starts=back_starts)
         return state, metrics
 
     def goal_pools(self, key_eval, key_initial) -> GoalPools:

@@ -1,0 +1,164 @@
+"""Several agents on one task, each agent's seeds in one program, then the figures
+(`make experiment TASK=point_umaze AGENTS=morefree,rf_peg SEEDS=0,1,2 STEPS=100000`).
+
+    python -m experiments.experiment task=point_umaze agents=morefree,rf_peg seeds=0,1,2 steps=100000 \
+        [preset=cpu] [parallel=2] [out=results] [key=value ...]
+
+Each agent trains in its own process (`experiments.train ... seeds=...`) with run dirs
+runs/<task>/<agent>/seed<k> and its output in runs/<task>/<agent>/train.log; `parallel` agents run at once
+(default: one per CPU core, each pinned to its own core). Other key=value arguments go to every agent's
+train command. While they run, one progress line per agent is printed every 60 s. Re-running the same
+command resumes every agent from its checkpoints (a finished agent returns at once). When all have
+finished, `experiments.plots runs/<task> --out <out>` draws the task's figures and table. Ctrl-C stops
+every agent after its current chunk (each saves a checkpoint). Bad input: one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+from experiments import plots
+from experiments.run_groups import read_run
+from morefree_jax.config_run import ConfigError
+from morefree_jax.seeds import parse_seeds
+
+OWN_KEYS = ("task", "agents", "seeds", "steps", "parallel", "out")
+PROGRESS_EVERY_S = 60.0
+
+
+def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
+    """({task, agents, seeds, steps, parallel, out}, the arguments passed on to every train command)."""
+    import envs_mjx
+    from morefree_jax.variants import VARIANTS
+
+    own, passed = {}, []
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        if not sep:
+            raise ConfigError(f"arguments are key=value, got {arg!r}")
+        if key not in OWN_KEYS:
+            passed.append(arg)
+        elif key in own:
+            raise ConfigError(f"{key} is given twice")
+        else:
+            own[key] = value
+    if own.get("task") not in envs_mjx.ALL_ENVS:
+        raise ConfigError(f"task={own.get('task')!r} is not a task; valid: {', '.join(envs_mjx.ALL_ENVS)}")
+    agents = [a for a in own.get("agents", "morefree,rf_peg").split(",") if a]
+    if not agents or any(a not in VARIANTS for a in agents) or len(set(agents)) != len(agents):
+        raise ConfigError(f"agents must be distinct names among {', '.join(VARIANTS)}; "
+                          f"got {','.join(agents) or '(none)'}")
+    settings = {"task": own["task"], "agents": agents, "seeds": parse_seeds(own.get("seeds", "0,1,2")),
+                "steps": own.get("steps"), "out": own.get("out", "results")}
+    settings["parallel"] = _positive_int("parallel", own.get("parallel", str(os.cpu_count() or 1)))
+    if settings["steps"] is not None:
+        _positive_int("steps", settings["steps"])
+    return settings, passed
+
+
+def _positive_int(name: str, text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise ConfigError(f"{name} must be a positive integer, got {text!r}")
+    return value
+
+
+def train_command(settings: dict, agent: str, passed: list[str]) -> list[str]:
+    seeds = ",".join(map(str, settings["seeds"]))
+    steps = [f"steps={settings['steps']}"] if settings["steps"] else []
+    return [sys.executable, "-m", "experiments.train", f"env={settings['task']}", f"agent={agent}",
+            f"seeds={seeds}", *steps, *passed]
+
+
+def agent_dir(settings: dict, agent: str) -> pathlib.Path:
+    return pathlib.Path("runs") / settings["task"] / agent
+
+
+def progress_line(settings: dict, agent: str, process) -> str:
+    """'agent: step s/total, success m over seeds' from the seeds' metrics (or the process state)."""
+    state = "running" if process is not None and process.poll() is None else "waiting"
+    if process is not None and process.poll() is not None:
+        state = "done" if process.returncode == 0 else f"exit {process.returncode}"
+    successes, step = [], None
+    for seed in settings["seeds"]:
+        try:
+            run = read_run(agent_dir(settings, agent) / f"seed{seed}")
+        except (ValueError, FileNotFoundError):
+            continue
+        evaluations = run.evaluations()
+        step = max(run.steps) if step is None else min(step, max(run.steps))
+        successes.append(evaluations[max(evaluations)])
+    total = settings["steps"] or "task budget"
+    where = "no evaluation yet" if step is None else \
+        f"step {step:,}/{total}, success {sum(successes) / len(successes):.2f} ({len(successes)} seeds)"
+    return f"{agent}: {where} [{state}]"
+
+
+def _start(settings, agent, passed, core):
+    directory = agent_dir(settings, agent)
+    directory.mkdir(parents=True, exist_ok=True)
+    log = open(directory / "train.log", "a")  # noqa: SIM115 - handed to the child
+    pin = (lambda: os.sched_setaffinity(0, {core})) if core is not None else None
+    return subprocess.Popen(train_command(settings, agent, passed), stdout=log, stderr=subprocess.STDOUT,
+                            preexec_fn=pin, start_new_session=True)
+
+
+def run_agents(settings: dict, passed: list[str]) -> dict[str, int]:
+    """Runs every agent (`parallel` at a time); {agent: exit code}."""
+    cores = sorted(os.sched_getaffinity(0))
+    pending, running, started, codes = list(settings["agents"]), {}, {}, {}
+    last_print = -float("inf")
+    try:
+        while pending or running:
+            free = [c for c in cores if c not in {core for _, core in running.values()}]
+            while pending and len(running) < settings["parallel"]:
+                core = free.pop(0) if settings["parallel"] > 1 and free else None
+                agent = pending.pop(0)
+                running[agent] = (_start(settings, agent, passed, core), core)
+                started[agent] = running[agent][0]
+            for agent, (process, _) in list(running.items()):
+                if process.poll() is not None:
+                    codes[agent] = process.returncode
+                    del running[agent]
+            if time.monotonic() - last_print >= PROGRESS_EVERY_S or not (pending or running):
+                last_print = time.monotonic()
+                for agent in settings["agents"]:
+                    print(progress_line(settings, agent, started.get(agent)), flush=True)
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        print("stopping every agent after its current chunk (each saves a checkpoint)", flush=True)
+        for process, _ in running.values():
+            process.send_signal(signal.SIGINT)
+        for agent, (process, _) in running.items():
+            codes[agent] = process.wait()
+    return codes
+
+
+def main(argv: list[str]) -> int:
+    if not argv or any(arg in ("-h", "--help") for arg in argv):
+        print(__doc__)
+        return 0 if argv else 2
+    try:
+        settings, passed = parse_args(argv)
+    except ConfigError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    codes = run_agents(settings, passed)
+    failed = {agent: code for agent, code in codes.items() if code != 0}
+    for agent, code in failed.items():
+        print(f"{agent} exited with {code}; see {agent_dir(settings, agent) / 'train.log'}", file=sys.stderr)
+    plotted = plots.main([str(pathlib.Path("runs") / settings["task"]), "--out", settings["out"],
+                          "--task", settings["task"]])
+    return 1 if failed else plotted
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,226 @@
+"""The paper's figures and a results table from run directories (`make plots RUNS=runs OUT=results`).
+
+    python -m experiments.plots runs [--out results] [--task point_umaze] [--marks 25000,50000,100000]
+
+Reads every run dir below the given directory (config.json + metrics.jsonl), groups them by task and agent,
+and writes to --out, per task (PNG and SVG):
+  <task>_success           eval success (any step of the episode) against env steps, mean over seeds with a
+                           standard-error band, seed count in the legend (the paper's protocol)
+  <task>_final_success     the same for success at the episode's last step
+  <task>_task_relevant     share of the replay near an initial state or an evaluation goal
+  <task>_visitation        the replay's xy visitation histogram per agent at the latest step every run has,
+                           summed over seeds; task-relevant share in the title; start (o) and goal (*)
+                           regions marked; the maze walls for PointUMaze
+  <task>_back_starts       where successful "back" chunks started: the 100 locations before each, shaded by
+                           how long the agent / object rested there (agents with Back-and-Forth Go-Explore)
+and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps) per task and
+agent, mean +- standard error over seeds, seed count, and the commits of the code that wrote the runs.
+Every file is stamped with those commits and the commit that drew it. A run dir that cannot be used is
+skipped with one line saying why; finding no run is a one-line error (exit 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+import numpy as np
+
+from experiments import run_groups
+from experiments.run_groups import NoRunsError
+from morefree_jax.provenance import code_version
+
+CURVES = (("success", "eval/success", "success (any step)"),
+          ("final_success", "eval/final_success", "success (last step)"),
+          ("task_relevant", "visitation/task_relevant", "task-relevant share of the replay"))
+
+
+def _figure(width=6.4, height=4.0):
+    from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
+
+    fig = Figure(figsize=(width, height), layout="constrained")
+    fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))  # a strip at the bottom for the stamp
+    return fig
+
+
+def save(fig, out: pathlib.Path, name: str, stamp: str) -> list[pathlib.Path]:
+    """name.png and name.svg with the stamp in a footer and in the files' metadata (no dates: files change
+    only when their content does)."""
+    fig.text(0.995, 0.005, stamp, ha="right", va="bottom", fontsize=6, color="0.4")
+    paths = [out / f"{name}.png", out / f"{name}.svg"]
+    fig.savefig(paths[0], dpi=120, metadata={"Description": stamp, "Software": None})
+    fig.savefig(paths[1], metadata={"Description": stamp, "Date": None})
+    return paths
+
+
+def curve_figure(task, groups, key, label):
+    fig = _figure()
+    axes = fig.add_subplot()
+    for (group_task, agent), group in sorted(groups.items()):
+        if group_task != task:
+            continue
+        steps, mean, stderr = run_groups.curve(group, key)
+        if not len(steps):
+            continue
+        line, = axes.plot(steps, mean, label=f"{agent} ({len(group)} seed{'s' * (len(group) > 1)})")
+        if len(group) > 1:
+            axes.fill_between(steps, mean - stderr, mean + stderr, color=line.get_color(), alpha=0.2)
+    axes.set(xlabel="env steps", ylabel=label, title=f"{task}: {label}, mean ± standard error")
+    axes.grid(alpha=0.3)
+    axes.legend(loc="best", fontsize=8)
+    return fig
+
+
+class TaskGeometry:
+    """The task's xy box, samples of its start and goal regions, and walls to draw (PointUMaze)."""
+
+    def __init__(self, task: str, samples: int = 200):
+        import jax
+
+        import envs_mjx
+
+        env = envs_mjx.make(task)
+        low, high = (np.asarray(env.xy(np.asarray(b, np.float32))) for b in env.observation_bounds)
+        self.extent = (low[0], high[0], low[1], high[1])
+        keys = jax.random.split(jax.random.PRNGKey(0), samples)
+        self.starts = np.asarray(jax.vmap(lambda k: env.xy(env.initial_states(k)))(keys))
+        self.goals = np.asarray(jax.vmap(lambda k: env.xy(env.eval_goals(k)))(keys))
+        self.walls = np.zeros((0, 2, 2))
+        if task == "point_umaze":
+            from envs_mjx.point_umaze import wall_faces
+
+            self.walls = wall_faces(radius=0.0)
+
+    def draw(self, axes):
+        for segment in self.walls:
+            axes.plot(segment[:, 0], segment[:, 1], color="0.2", linewidth=2)
+        axes.scatter(*self.starts.T, marker="o", s=12, facecolors="none", edgecolors="tab:blue",
+                     label="start")
+        axes.scatter(*self.goals.T, marker="*", s=18, color="tab:green", label="goal")
+        axes.set(xlim=self.extent[:2], ylim=self.extent[2:], aspect="equal")
+
+
+def _panels(count):
+    fig = _figure(3.2 * count + 0.4, 3.4)
+    return fig, [fig.add_subplot(1, count, i + 1) for i in range(count)]
+
+
+def visitation_figure(task, groups, geometry: TaskGeometry):
+    """Per agent: the xy histogram summed over seeds at the latest step every run of the task has saved."""
+    agents = [(agent, group) for (t, agent), group in sorted(groups.items()) if t == task]
+    common = [set.intersection(*({int(p.stem.split("_")[1]) for p in (r.run_dir / "plots").glob(
+        "visitation_*.npy")} for r in group)) for _, group in agents]
+    step = max(set.intersection(*common), default=None)
+    if step is None:
+        return None, None
+    fig, axes = _panels(len(agents))
+    for ax, (agent, group) in zip(axes, agents, strict=True):
+        histogram = sum(np.load(r.run_dir / "plots" / f"visitation_{step:09d}.npy") for r in group)
+        share = np.mean([r.steps[step].get("visitation/task_relevant", np.nan) for r in group])
+        ax.imshow(np.log1p(histogram.T), origin="lower", extent=geometry.extent, cmap="viridis")
+        geometry.draw(ax)
+        seeds = f"{len(group)} seed{'s' * (len(group) > 1)}"
+        ax.set_title(f"{agent}: task-relevant {100 * share:.1f}%\n({seeds}, step {step:,})", fontsize=9)
+    axes[0].legend(loc="lower right", fontsize=7)
+    return fig, step
+
+
+def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
+    """(100,) share of the trajectory's points within `radius` of each point (NaN points: 0)."""
+    distances = np.linalg.norm(trajectory[:, None] - trajectory[None], axis=-1)
+    return np.nansum(distances < radius, axis=1) / len(trajectory)
+
+
+def back_starts_figure(task, groups, geometry: TaskGeometry):
+    agents = []
+    for (t, agent), group in sorted(groups.items()):
+        files = [r.run_dir / "plots" / "back_starts.npz" for r in group]
+        if t == task and any(f.exists() for f in files):
+            agents.append((agent, [np.load(f)["xy"] for f in files if f.exists()]))
+    if not agents:
+        return None
+    fig, axes = _panels(len(agents))
+    radius = 0.03 * np.hypot(geometry.extent[1] - geometry.extent[0], geometry.extent[3] - geometry.extent[2])
+    for ax, (agent, per_seed) in zip(axes, agents, strict=True):
+        trajectories = np.concatenate(per_seed)
+        points = trajectories.reshape(-1, 2)
+        density = np.concatenate([rest_density(t, radius) for t in trajectories])
+        keep = np.isfinite(points).all(axis=1)
+        order = np.argsort(density[keep])  # the longest rests drawn on top
+        geometry.draw(ax)
+        ax.scatter(*points[keep][order].T, c=density[keep][order], cmap="Reds", vmin=0, vmax=1, s=4)
+        seeds = f"{len(per_seed)} seed{'s' * (len(per_seed) > 1)}"
+        ax.set_title(f"{agent}: {len(trajectories)} successful back chunks\n(100 steps before each, "
+                     f"{seeds})", fontsize=9)
+    return fig
+
+
+def write_task(task, groups, out, stamp_for) -> list[pathlib.Path]:
+    written = []
+    commits = sorted({c for (t, _), g in groups.items() if t == task for r in g for c in r.commits})
+    stamp = stamp_for(commits)
+    for name, key, label in CURVES:
+        written += save(curve_figure(task, groups, key, label), out, f"{task}_{name}", stamp)
+    geometry = TaskGeometry(task)
+    fig, _ = visitation_figure(task, groups, geometry)
+    if fig is not None:
+        written += save(fig, out, f"{task}_visitation", stamp)
+    fig = back_starts_figure(task, groups, geometry)
+    if fig is not None:
+        written += save(fig, out, f"{task}_back_starts", stamp)
+    return written
+
+
+def write_table(task, groups, out, marks, stamp_for) -> list[pathlib.Path]:
+    """<task>_results.csv and .md: success at the step marks (default: 4 evenly spaced evaluated steps)."""
+    task_groups = {key: group for key, group in groups.items() if key[0] == task}
+    rows = run_groups.results_rows(task_groups, {task: marks or run_groups.default_marks(task_groups, task)})
+    commits = sorted({c for group in task_groups.values() for r in group for c in r.commits})
+    paths = [out / f"{task}_results.csv", out / f"{task}_results.md"]
+    paths[0].write_text(run_groups.csv_text(rows))
+    paths[1].write_text(run_groups.markdown_table(rows) + f"\n{stamp_for(commits)}\n")
+    return paths
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser(prog="python -m experiments.plots", description=__doc__.splitlines()[0])
+    parser.add_argument("runs", help="directory searched for run dirs (e.g. runs)")
+    parser.add_argument("--out", default="results", help="where figures and tables go (default: results)")
+    parser.add_argument("--task", default=None, help="only this task")
+    parser.add_argument("--marks", default="", help="comma-separated env steps of the results table")
+    args = parser.parse_args(argv)
+    try:
+        args.marks = [int(m) for m in args.marks.split(",") if m.strip()]
+    except ValueError:
+        parser.error(f"--marks must be comma-separated integers, got {args.marks!r}")
+    return args
+
+
+def main(argv: list[str]) -> int:
+    args = _parse(argv)
+    try:
+        runs, skipped = run_groups.find_runs(args.runs, args.task)
+    except NoRunsError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    for line in skipped:
+        print(line)
+    groups = run_groups.group_runs(runs)
+    tasks = sorted({task for task, _ in groups})
+    drawn = code_version()["commit"]
+    stamp_for = lambda commits: f"runs: {' '.join(commits)} · drawn: {(drawn or 'unknown')[:7]}"  # noqa: E731
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for task in tasks:
+        written += write_task(task, groups, out, stamp_for)
+        written += write_table(task, groups, out, args.marks, stamp_for)
+    for (task, agent), group in sorted(groups.items()):
+        print(f"{task} {agent}: seeds {','.join(str(r.seed) for r in group)}")
+    print(f"wrote {len(written)} files to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,180 @@
+"""Run directories grouped by task and agent, with the statistics of the paper's protocol (mean and standard
+error over seeds) and the results table. No JAX, no matplotlib: experiments/plots.py draws from these.
+
+    runs, skipped = find_runs("runs")                  # every run dir below (config.json + metrics.jsonl)
+    groups = group_runs(runs)                          # {(task, agent): [RunRecord, ...]} sorted by seed
+    steps, mean, stderr = curve(groups[key], "eval/success")
+    rows = results_rows(groups, marks={"point_umaze": [25000, 50000, 100000]})
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+
+import numpy as np
+
+from morefree_jax.logger import PROVENANCE_FILE, read_metrics
+
+
+class NoRunsError(Exception):
+    """No usable run directory was found (the message says where and why)."""
+
+
+@dataclasses.dataclass
+class RunRecord:
+    """One run dir: its task, agent and seed, per-step merged metrics, and the commits that wrote it."""
+
+    run_dir: pathlib.Path
+    task: str
+    agent: str
+    seed: int
+    steps: dict[int, dict]
+    commits: tuple[str, ...]
+
+    def evaluations(self, key: str = "eval/success") -> dict[int, float]:
+        return {step: record[key] for step, record in sorted(self.steps.items()) if key in record}
+
+    def latest_file(self, pattern: str) -> pathlib.Path | None:
+        files = sorted((self.run_dir / "plots").glob(pattern))
+        return files[-1] if files else None
+
+
+def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
+    """Short commits of every start of the run (provenance.jsonl), '+dirty' when the tree had changes."""
+    path = run_dir / PROVENANCE_FILE
+    if not path.exists():
+        return ("unknown",)
+    seen = []
+    for line in path.read_text().splitlines():
+        entry = json.loads(line)
+        commit = (entry.get("commit") or "unknown")[:7] + ("+dirty" if entry.get("dirty") else "")
+        if commit not in seen:
+            seen.append(commit)
+    return tuple(seen) or ("unknown",)
+
+
+def read_run(run_dir: pathlib.Path) -> RunRecord:
+    """The run in `run_dir`; ValueError (one line: why) when it cannot be used."""
+    metrics = run_dir / "metrics.jsonl"
+    if not metrics.exists():
+        raise ValueError("no metrics.jsonl (not started yet?)")
+    try:
+        run = json.loads((run_dir / "config.json").read_text())["run"]
+        task, agent, seed = run["env"], run["agent"], int(run["seed"])
+    except (KeyError, ValueError, TypeError) as error:
+        raise ValueError(f"config.json is not a run config ({error})") from None
+    steps: dict[int, dict] = {}
+    for record in read_metrics(metrics):
+        steps.setdefault(int(record["step"]), {}).update(record)
+    record = RunRecord(run_dir, task, agent, seed, steps, _commits(run_dir))
+    if not record.evaluations():
+        raise ValueError("no evaluation yet")
+    return record
+
+
+def find_runs(root, task: str | None = None) -> tuple[list[RunRecord], list[str]]:
+    """(runs below `root`, one line per skipped directory saying why). NoRunsError when none is usable."""
+    root = pathlib.Path(root)
+    if not root.is_dir():
+        raise NoRunsError(f"{root} is not a directory")
+    runs, skipped = [], []
+    for config in sorted(root.rglob("config.json")):
+        run_dir = config.parent
+        try:
+            record = read_run(run_dir)
+        except ValueError as error:
+            skipped.append(f"skipped {run_dir}: {error}")
+            continue
+        if task is not None and record.task != task:
+            skipped.append(f"skipped {run_dir}: holds task {record.task}, not {task}")
+            continue
+        runs.append(record)
+    if not runs:
+        where = f"{root}" + (f" for task {task}" if task else "")
+        raise NoRunsError(f"no run with evaluations found below {where} (a run dir holds config.json and "
+                          f"metrics.jsonl; {len(skipped)} skipped)")
+    return runs, skipped
+
+
+def group_runs(runs: list[RunRecord]) -> dict[tuple[str, str], list[RunRecord]]:
+    """{(task, agent): runs sorted by seed}; a seed present twice (two copies of one run) keeps the first."""
+    groups: dict[tuple[str, str], list[RunRecord]] = {}
+    for run in sorted(runs, key=lambda r: (r.task, r.agent, r.seed, str(r.run_dir))):
+        group = groups.setdefault((run.task, run.agent), [])
+        if all(other.seed != run.seed for other in group):
+            group.append(run)
+    return groups
+
+
+def mean_stderr(values) -> tuple[float, float]:
+    """Mean and standard error (sample std / sqrt(n); NaN for one value) of a sequence."""
+    values = np.asarray(values, np.float64)
+    if values.size < 2:
+        return float(values.mean()), math.nan
+    return float(values.mean()), float(values.std(ddof=1) / math.sqrt(values.size))
+
+
+def curve(group: list[RunRecord], key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(steps, mean, standard error) of `key` over the seeds, at the steps every seed has logged it."""
+    series = [run.evaluations(key) for run in group]
+    steps = sorted(set.intersection(*(set(s) for s in series)))
+    stats = [mean_stderr([s[step] for s in series]) for step in steps]
+    return (np.asarray(steps), np.asarray([m for m, _ in stats]), np.asarray([e for _, e in stats]))
+
+
+def default_marks(groups, task: str, count: int = 4) -> list[int]:
+    """`count` evenly spaced evaluation steps up to the furthest step every run of `task` has evaluated."""
+    steps = sorted(set.intersection(*(set(curve(g, "eval/success")[0]) for (t, _), g in groups.items()
+                                      if t == task)))
+    if not steps:
+        return []
+    targets = [steps[-1] * (i + 1) / count for i in range(count)]
+    return sorted({max(s for s in steps if s <= target) for target in targets if steps[0] <= target})
+
+
+RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_stderr", "final_success_mean",
+                  "final_success_stderr", "task_relevant_mean", "commits")
+
+
+def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
+    """One row per (task, agent, step mark) the group reached: success (any step) and at the last step of
+    the evaluation episodes, task-relevant share of the replay; mean and standard error over seeds."""
+    rows = []
+    for (task, agent), group in sorted(groups.items()):
+        for step in marks.get(task, []):
+            if any(step not in run.steps or "eval/success" not in run.steps[step] for run in group):
+                continue
+            at = [run.steps[step] for run in group]
+            success = mean_stderr([r["eval/success"] for r in at])
+            final = mean_stderr([r.get("eval/final_success", math.nan) for r in at])
+            relevant = mean_stderr([r.get("visitation/task_relevant", math.nan) for r in at])
+            commits = sorted({c for run in group for c in run.commits})
+            rows.append(dict(zip(RESULT_COLUMNS, (task, agent, len(group), step, *success, *final,
+                                                  relevant[0], " ".join(commits)), strict=True)))
+    return rows
+
+
+def _with_error(mean: float, stderr: float) -> str:
+    return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
+
+
+def markdown_table(rows: list[dict]) -> str:
+    lines = ["| task | agent | seeds | env steps | success | final success | task-relevant | commits |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | {row['step']:,} | "
+                     f"{_with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{_with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{row['task_relevant_mean']:.3f} | {row['commits']} |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(rows: list[dict]) -> str:
+    def cell(value):
+        return f"{value:.4f}" if isinstance(value, float) else str(value)
+
+    return "\n".join([",".join(RESULT_COLUMNS)] + [",".join(cell(row[c]) for c in RESULT_COLUMNS)
+                                                   for row in rows]) + "\n"

@@ -1,0 +1,69 @@
+"""experiments.experiment: argument checks, and the orchestration (agents in parallel, a log each, progress
+lines, exit codes, plots at the end) with a stand-in for the train command that writes a small run dir."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+
+import pytest
+
+from experiments import experiment
+from morefree_jax.config_run import ConfigError
+
+# Writes a run dir per seed like experiments.train would (config.json, metrics.jsonl with an evaluation).
+FAKE_TRAIN = textwrap.dedent("""
+    import json, pathlib, sys
+    args = dict(arg.split("=", 1) for arg in sys.argv[1:])
+    if args["agent"] == "dreamer_gc":
+        print("error: a failing agent"); sys.exit(2)
+    for seed in args["seeds"].split(","):
+        run_dir = pathlib.Path("runs") / args["env"] / args["agent"] / f"seed{seed}"
+        (run_dir / "plots").mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(json.dumps(
+            {"run": {"env": args["env"], "agent": args["agent"], "seed": int(seed)}}))
+        (run_dir / "metrics.jsonl").write_text(json.dumps({"step": 1000, "eval/success": 0.5}) + "\\n")
+    print("done")
+""")
+
+
+def test_bad_arguments_are_one_line_errors():
+    with pytest.raises(ConfigError, match="valid: point_umaze"):
+        experiment.parse_args(["task=maze"])
+    with pytest.raises(ConfigError, match="agents must be distinct names among morefree"):
+        experiment.parse_args(["task=point_umaze", "agents=morefree,nope"])
+    with pytest.raises(ConfigError, match="seeds must be"):
+        experiment.parse_args(["task=point_umaze", "seeds=0,0"])
+    with pytest.raises(ConfigError, match="steps must be a positive integer"):
+        experiment.parse_args(["task=point_umaze", "steps=-5"])
+    with pytest.raises(ConfigError, match="task is given twice"):
+        experiment.parse_args(["task=point_umaze", "task=tabletop"])
+
+
+def test_other_arguments_go_to_every_train_command():
+    settings, passed = experiment.parse_args(["task=tabletop", "agents=morefree", "seeds=1,2", "steps=5000",
+                                              "preset=debug", "wm.deter=32"])
+    assert passed == ["preset=debug", "wm.deter=32"]
+    command = experiment.train_command(settings, "morefree", passed)
+    assert command[1:] == ["-m", "experiments.train", "env=tabletop", "agent=morefree", "seeds=1,2",
+                           "steps=5000", "preset=debug", "wm.deter=32"]
+
+
+def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "fake_train.py").write_text(FAKE_TRAIN)
+    monkeypatch.setattr(experiment, "train_command",
+                        lambda settings, agent, passed: [sys.executable, str(tmp_path / "fake_train.py"),
+                                                         f"env={settings['task']}", f"agent={agent}",
+                                                         f"seeds={','.join(map(str, settings['seeds']))}"])
+    plotted = []
+    monkeypatch.setattr(experiment.plots, "main", lambda argv: plotted.append(argv) or 0)
+    code = experiment.main(["task=tabletop", "agents=morefree,rf_peg,dreamer_gc", "seeds=0,1", "parallel=2"])
+    out, err = capsys.readouterr()
+    assert code == 1  # one agent failed
+    assert "morefree: step 1,000/task budget, success 0.50 (2 seeds) [done]" in out
+    assert "dreamer_gc: no evaluation yet [exit 2]" in out
+    assert "dreamer_gc exited with 2; see runs/tabletop/dreamer_gc/train.log" in err
+    assert "a failing agent" in (tmp_path / "runs/tabletop/dreamer_gc/train.log").read_text()
+    assert (tmp_path / "runs/tabletop/rf_peg/seed1/metrics.jsonl").exists()
+    assert plotted == [["runs/tabletop", "--out", "results", "--task", "tabletop"]]

@@ -1,0 +1,103 @@
+"""experiments.plots / run_groups on hand-made run dirs: grouping, mean and standard error, skipped dirs,
+the files written, the one-line error when no run is found."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from experiments import plots, run_groups
+
+SUCCESS = {("morefree", 0): [0.0, 0.5, 1.0], ("morefree", 1): [0.0, 0.3, 0.8],
+           ("morefree", 2): [0.2, 0.4, 0.6], ("rf_peg", 0): [0.0, 0.1, 0.2], ("rf_peg", 1): [0.0, 0.3, 0.4]}
+STEPS = (2500, 5000, 7500)
+
+
+def write_run(run_dir, task, agent, seed, successes, commit="a" * 40, back_starts=False):
+    (run_dir / "plots").mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps({"run": {"env": task, "agent": agent, "seed": seed}}))
+    (run_dir / "provenance.jsonl").write_text(json.dumps({"start_step": 0, "commit": commit, "dirty": False})
+                                              + "\n")
+    lines = []
+    for step, success in zip(STEPS, successes, strict=True):
+        lines.append({"step": step, "wm/loss": 1.0})
+        lines.append({"step": step, "eval/success": success, "eval/final_success": success / 2})
+        lines.append({"step": step, "visitation/task_relevant": 0.1 * seed})
+        histogram = np.zeros((50, 50))
+        histogram[10 + seed, 20] = step
+        np.save(run_dir / "plots" / f"visitation_{step:09d}.npy", histogram)
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    if back_starts:
+        xy = np.random.default_rng(seed).uniform(-1, 9, (3, 100, 2)).astype(np.float32)
+        xy[0, :10] = np.nan  # before the stream started
+        np.savez(run_dir / "plots" / "back_starts.npz", xy=xy, stream_step=np.arange(3), step=np.int64(7500))
+
+
+@pytest.fixture
+def runs(tmp_path):
+    root = tmp_path / "runs"
+    for (agent, seed), successes in SUCCESS.items():
+        write_run(root / "point_umaze" / agent / f"seed{seed}", "point_umaze", agent, seed, successes,
+                  back_starts=agent == "morefree")
+    return root
+
+
+def test_curve_is_the_mean_and_standard_error_over_seeds(runs):
+    found, skipped = run_groups.find_runs(runs)
+    groups = run_groups.group_runs(found)
+    assert sorted(groups) == [("point_umaze", "morefree"), ("point_umaze", "rf_peg")] and not skipped
+    steps, mean, stderr = run_groups.curve(groups[("point_umaze", "morefree")], "eval/success")
+    assert steps.tolist() == list(STEPS)
+    last = [1.0, 0.8, 0.6]
+    assert mean[-1] == pytest.approx(0.8)
+    assert stderr[-1] == pytest.approx(np.std(last, ddof=1) / math.sqrt(3))
+
+
+def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
+    write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0, 0, 0])
+    (runs / "broken").mkdir()
+    (runs / "broken" / "config.json").write_text("{}")
+    out = tmp_path / "results"
+    assert plots.main([str(runs), "--out", str(out), "--task", "point_umaze", "--marks", "5000,7500"]) == 0
+    printed = capsys.readouterr().out
+    assert "skipped" in printed and "broken: no metrics.jsonl" in printed
+    assert "holds task tabletop, not point_umaze" in printed
+    names = {path.name for path in out.iterdir()}
+    for figure in ("success", "final_success", "task_relevant", "visitation", "back_starts"):
+        assert {f"point_umaze_{figure}.png", f"point_umaze_{figure}.svg"} <= names
+    with open(out / "point_umaze_results.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert [(r["agent"], r["step"], r["seeds"]) for r in rows] == [
+        ("morefree", "5000", "3"), ("morefree", "7500", "3"), ("rf_peg", "5000", "2"),
+        ("rf_peg", "7500", "2")]
+    assert float(rows[3]["success_mean"]) == pytest.approx(0.3)
+    assert float(rows[3]["success_stderr"]) == pytest.approx(0.1)
+    assert float(rows[3]["final_success_mean"]) == pytest.approx(0.15)
+    assert rows[0]["commits"] == "aaaaaaa"
+    table = (out / "point_umaze_results.md").read_text()
+    assert "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 |" in table and "runs: aaaaaaa" in table
+    assert b"runs: aaaaaaa" in (out / "point_umaze_success.svg").read_bytes()
+
+
+def test_default_marks_are_evaluated_steps(runs):
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    assert run_groups.default_marks(groups, "point_umaze", count=3) == list(STEPS)
+
+
+def test_no_run_found_is_one_line(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert plots.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: no run with evaluations found below") and error.count("\n") == 1
+
+
+def test_rest_density_counts_nearby_points():
+    trajectory = np.zeros((100, 2))
+    trajectory[50:] = [5.0, 5.0]
+    trajectory[99] = [np.nan, np.nan]
+    density = plots.rest_density(trajectory, radius=1.0)
+    assert density[0] == pytest.approx(0.5) and density[60] == pytest.approx(0.49) and density[99] == 0.0
