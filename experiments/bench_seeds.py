@@ -4,6 +4,7 @@ and 2 seeds; achieved FLOP/s next to a matmul peak measured in the same run.
 
     python -m experiments.bench --only seeds
     python -m experiments.bench_seeds --run 2 map 8   # one measurement (2 seeds, lax.map, 8 chunks) as JSON
+    python -m experiments.bench_seeds --paper-rows    # only the paper train step rows
 
 Every ratio divides two figures of this same run (the machine's speed varies from day to day).
 """
@@ -131,33 +132,49 @@ def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vma
     return rows
 
 
-def paper_rows(peak: float, reps: int = 2) -> list[dict]:
-    """The paper-size train step for 1 and 2 seeds (vmap and map) on one batch per seed."""
+PAPER_CASES = ("1_seed", "vmap_2_seeds", "map_2_seeds")
+
+
+def paper_case(label: str) -> dict:
+    """One case of the paper-size train step on one batch per seed: compile s, best of 2 s per seed."""
     agent, state, batch, pools = _inputs("paper")
     flops = train_step_flops(agent.config, agent.spec, state, batch, pools, jax.random.PRNGKey(2))
-    rows, base = [], None
+
     def mapped(*args):
         return jax.lax.map(lambda per_seed: agent.train_step(*per_seed), args)
 
-    cases = (("1_seed", 1, agent.train_step), ("vmap_2_seeds", 2, jax.vmap(agent.train_step)),
-             ("map_2_seeds", 2, mapped))
-    for label, num_seeds, step in cases:
-        if num_seeds == 1:
-            args = (state, batch, pools, jax.random.PRNGKey(2))
-        else:
-            stacked = jax.tree.map(lambda x, n=num_seeds: jnp.stack([x] * n), (state, batch, pools))
-            args = (*stacked, jax.random.split(jax.random.PRNGKey(2), num_seeds))
-        start = time.perf_counter()
-        compiled = jax.jit(step).lower(*args).compile()
-        compile_s = time.perf_counter() - start
-        jax.block_until_ready(compiled(*args))
-        seconds = min(_timed(compiled, *args)[1] for _ in range(reps))
-        per_seed = seconds / num_seeds
-        base = per_seed if num_seeds == 1 else base
-        achieved = flops * num_seeds / seconds
+    steps = {"1_seed": (1, agent.train_step), "vmap_2_seeds": (2, jax.vmap(agent.train_step)),
+             "map_2_seeds": (2, mapped)}
+    num_seeds, step = steps[label]
+    if num_seeds == 1:
+        args = (state, batch, pools, jax.random.PRNGKey(2))
+    else:
+        stacked = jax.tree.map(lambda x: jnp.stack([x] * num_seeds), (state, batch, pools))
+        args = (*stacked, jax.random.split(jax.random.PRNGKey(2), num_seeds))
+    start = time.perf_counter()
+    compiled = jax.jit(step).lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(*args))
+    seconds = min(_timed(compiled, *args)[1] for _ in range(2))
+    return {"seeds": num_seeds, "seconds": seconds, "compile_s": compile_s, "flops_per_seed": flops}
+
+
+def paper_rows(peak: float) -> list[dict]:
+    """The paper-size train step for 1 and 2 seeds (vmap and map), each case in its own process (the
+    2-seed cases may not fit in memory here: that case becomes a row saying so)."""
+    rows, base = [], None
+    for label in PAPER_CASES:
+        try:
+            result = _result(_child("--paper", label))
+        except RuntimeError as error:
+            rows.append(_row(f"paper/train_step_{label}_failed", 0.0, "", str(error)))
+            continue
+        per_seed = result["seconds"] / result["seeds"]
+        base = per_seed if result["seeds"] == 1 else base
+        speed = f"{base / per_seed:.2f}x the per-seed throughput of one seed; " if base else ""
+        achieved = result["flops_per_seed"] * result["seeds"] / result["seconds"]
         rows += [_row(f"paper/train_step_{label}_per_seed_s", per_seed, "s",
-                      f"{base / per_seed:.2f}x the per-seed throughput of one seed; "
-                      f"compile {compile_s:.0f} s"),
+                      f"{speed}compile {result['compile_s']:.0f} s"),
                  _row(f"paper/train_step_{label}_flops", achieved / 1e9, "GFLOP/s",
                       f"{achieved / peak:.0%} of the matmul peak")]
     return rows
@@ -168,11 +185,7 @@ def run(quick: bool = False) -> list[dict]:
     rows = [_row("matmul_peak", peak / 1e9, "GFLOP/s", "this run's reference for the FLOP/s rows")]
     if quick:
         return rows + run_rows(chunks=1, peak=peak, seed_counts=(1,), modes=("map",), processes=False)
-    try:  # the paper learner at 2 seeds needs much memory: a child process, so a failure is one row
-        paper = _result(_child("--paper", str(peak)))
-    except RuntimeError as error:
-        paper = [_row("paper/train_step_seeds_failed", 0.0, "", str(error))]
-    return rows + run_rows(chunks=8, peak=peak) + paper
+    return rows + run_rows(chunks=8, peak=peak) + paper_rows(peak)
 
 
 if __name__ == "__main__":
@@ -182,10 +195,15 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--run", nargs=3, metavar=("SEEDS", "AXIS", "CHUNKS"),
                         help="one measurement of run_throughput; print it as JSON")
-    parser.add_argument("--paper", type=float, metavar="PEAK", help="the paper rows as JSON (peak in FLOP/s)")
+    parser.add_argument("--paper", choices=PAPER_CASES, help="one case of the paper train step as JSON")
+    parser.add_argument("--paper-rows", action="store_true", help="print only the paper rows")
     args = parser.parse_args()
     if args.paper:
-        print(json.dumps(paper_rows(args.paper)))
+        print(json.dumps(paper_case(args.paper)))
+    elif args.paper_rows:
+        peak = matmul_peak()
+        for row in [_row("matmul_peak", peak / 1e9, "GFLOP/s", "")] + paper_rows(peak):
+            print(f"{row['name']:52} {row['value']:10.3f} {row['unit']:8} {row['note']}", flush=True)
     elif args.run:
         print(json.dumps(run_throughput(int(args.run[0]), args.run[1], int(args.run[2]))))
     else:

@@ -13,12 +13,15 @@ exits with code 2 and one line.
 from __future__ import annotations
 
 import os
+import pathlib
+import shutil
 import sys
 
 import envs_mjx
 from morefree_jax import runtime
 from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
 from morefree_jax.config_run import ConfigError, resolve_config
+from morefree_jax.run_lock import RunDirError
 
 
 def _runtime_line() -> str:
@@ -27,6 +30,18 @@ def _runtime_line() -> str:
     if settings["allocator"] != "jemalloc":
         line += " (with libjemalloc2 installed, `make train` preloads jemalloc: ~15% faster updates)"
     return line
+
+
+def disk_error_line(error: OSError) -> str:
+    """One line for a failed write: the file, the reason, and the free space where it was written."""
+    path = error.filename or "a file"
+    line = f"could not write {path} ({error.strerror or error})"
+    if error.filename:
+        existing = pathlib.Path(error.filename).resolve()
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        line += f"; {shutil.disk_usage(existing).free / 2**20:.1f} MiB free there"
+    return line + "; the last checkpoint is kept: free space and re-run the same command to resume"
 
 
 def split_seeds(argv: list[str]) -> tuple[tuple[int, ...] | None, list[str]]:
@@ -63,8 +78,14 @@ def main(argv: list[str]) -> int:
               f"{fns.updates_per_chunk} updates/chunk", flush=True)
         print(_runtime_line(), flush=True)
         summary = loop.train(config, seeds, programs)[0]
-    except (ConfigError, ConfigMismatchError, CheckpointError) as error:
+    except (ConfigError, ConfigMismatchError, CheckpointError, RunDirError) as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # a second Ctrl-C: stop now; the last checkpoint written stays
+        print("interrupted; re-run the same command to resume from the last checkpoint", file=sys.stderr)
+        return 130
+    except OSError as error:  # e.g. a full disk: which file, and how much space is left
+        print(f"error: {disk_error_line(error)}", file=sys.stderr)
         return 2
     except ValueError as error:  # validation in the task / replay / schedule constructors
         print(f"error: {str(error).splitlines()[0]}", file=sys.stderr)

@@ -75,13 +75,15 @@ def test_resume_drops_lines_after_the_checkpoint_and_appends(tmp_path):
     resumed = read_metrics(interrupted / "metrics.jsonl")
     assert without_time(resumed) == without_time(read_metrics(uninterrupted / "metrics.jsonl"))
     assert resumed[2]["time/elapsed_s"] >= first_run_elapsed  # elapsed time continues across the resume
-    # TensorBoard is told to hide the killed run's events from step 21 on (a session-start purge marker).
-    purges = [e.step for e in tensorboard_events(interrupted) if e.session_log.status == e.session_log.START]
-    assert purges == [21]
-    # A fresh (non-resumed) start in the same dir starts the file over.
+    # TensorBoard's events after step 20 are cut from the killed run's file: each step once, as uninterrupted.
+    steps = {tag: [step for step, _ in values] for tag, values in tensorboard_scalars(interrupted).items()}
+    assert steps["wm/loss"] == [10, 20, 30, 40, 50, 60] and steps["eval/success"] == steps["wm/loss"]
+    assert tensorboard_scalars(interrupted)["wm/loss"] == tensorboard_scalars(uninterrupted)["wm/loss"]
+    # A fresh (non-resumed) start in the same dir starts the files over.
     with RunLogger(interrupted, CONFIG, 60, progress="off") as logger:
         log_steps(logger, [10])
     assert [r["step"] for r in read_metrics(interrupted / "metrics.jsonl")] == [10]
+    assert [step for step, _ in tensorboard_scalars(interrupted)["wm/loss"]] == [10]
 
 
 def test_log_visitation_saves_histogram_and_summary(tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import shutil
 import signal
 import subprocess
 import sys
@@ -27,6 +28,7 @@ from morefree_jax.checkpoint import ConfigMismatchError, latest_valid
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
 from morefree_jax.run_fns import keep_if_finite
+from morefree_jax.tb_events import event_files, read_records
 from morefree_jax.variants import VARIANTS
 from tests.loop_helpers import (
     CHUNK,
@@ -90,17 +92,47 @@ def _start_cli(run_dir, steps: int) -> subprocess.Popen:
     return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
-def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
+def _second_writer_is_refused(first: subprocess.Popen, run_dir) -> None:
+    """A second CLI process on the live run dir exits 2 with one line naming the first one's pid."""
+    lock = run_dir / ".lock"
+    while first.poll() is None and not (lock.exists() and lock.read_text()):
+        time.sleep(0.05)
+    second = _start_cli(run_dir, PREFILL + 10 * CHUNK)
+    _, err = second.communicate(timeout=300)
+    lines = err.decode().strip().splitlines()
+    assert second.returncode == 2 and lines[-1].startswith(f"error: run dir {run_dir} is in use by pid "
+                                                           f"{first.pid} on "), lines[-3:]
+
+
+def _every_metric_is_in_tensorboard(run_dir) -> None:
+    """Every tag of metrics.jsonl is in the TensorBoard events at every step it was logged, exactly once."""
+    logged = {(r["step"], name) for r in read_metrics(run_dir / "metrics.jsonl") for name in r
+              if name not in ("step", "time/wall")}
+    events = [(event.step, value.tag) for path in event_files(run_dir / "tb")
+              for event, _ in read_records(path) for value in event.summary.value]
+    assert len(events) == len(set(events)), "a step logged twice in TensorBoard"
+    assert set(events) == logged
+
+
+def test_resume_after_sigkill_continues_bit_for_bit(tmp_path, capsys):
     full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
     train("morefree", full_dir, THREE_CHUNKS, checkpoint_every=2 * CHUNK)
     # A CLI run that would go on for 10 chunks is SIGKILLed once its checkpoint after chunk 2 is complete.
     process = _start_cli(killed_dir, PREFILL + 10 * CHUNK)
+    _second_writer_is_refused(process, killed_dir)
     sigkill_once_written(process, killed_dir / "checkpoints" / str(TWO_CHUNKS) / "files.json")
     steps = sorted(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
     assert steps == [TWO_CHUNKS], f"killed too late: {steps}"
-    # Resume (same config, longer budget ignored) and run one more chunk.
+    # Resume (same config, a shorter budget: allowed and recorded) and run one more chunk.
     summary = train("morefree", killed_dir, THREE_CHUNKS, checkpoint_every=2 * CHUNK)
     assert summary.env_steps == THREE_CHUNKS
+    out, err = capsys.readouterr()
+    assert f"taking over the lock of {killed_dir} from pid {process.pid}" in err
+    assert f"resuming from step {TWO_CHUNKS} (checkpoint {killed_dir}/checkpoints/{TWO_CHUNKS})" in out
+    starts = [json.loads(line) for line in (killed_dir / "provenance.jsonl").read_text().splitlines()]
+    assert [s["start_step"] for s in starts] == [0, TWO_CHUNKS]
+    assert starts[1]["changed"] == {"run.total_steps": [PREFILL + 10 * CHUNK, THREE_CHUNKS]}
+    _every_metric_is_in_tensorboard(killed_dir)
     step_a, state_a = final_state("morefree", full_dir)
     step_b, state_b = final_state("morefree", killed_dir)
     assert step_a == step_b == THREE_CHUNKS
@@ -110,6 +142,24 @@ def test_resume_after_sigkill_continues_bit_for_bit(tmp_path):
                if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
     assert not unequal, f"{len(unequal)} of {len(leaves_a)} state arrays differ"
     assert records_without_time(full_dir) == records_without_time(killed_dir)
+
+
+def test_a_moved_run_dir_resumes_bit_for_bit(tmp_path):
+    """The location is not part of a run's identity: a copy elsewhere, named with a trailing slash,
+    resumes as the original would have continued."""
+    full_dir, first_dir, moved_dir = tmp_path / "full", tmp_path / "first", tmp_path / "else" / "moved"
+    train("morefree", full_dir, THREE_CHUNKS)
+    train("morefree", first_dir, TWO_CHUNKS)
+    shutil.copytree(first_dir, moved_dir)  # like cp -a
+    train("morefree", f"{moved_dir}/", THREE_CHUNKS)
+    step_a, state_a = final_state("morefree", full_dir)
+    step_b, state_b = final_state("morefree", moved_dir)
+    assert step_a == step_b == THREE_CHUNKS
+    assert all(np.asarray(a).tobytes() == np.asarray(b).tobytes()
+               for a, b in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True))
+    assert records_without_time(full_dir) == records_without_time(moved_dir)
+    changed = json.loads((moved_dir / "provenance.jsonl").read_text().splitlines()[-1])["changed"]
+    assert changed["run.run_dir"] == [str(first_dir), f"{moved_dir}/"]
 
 
 def test_corrupted_checkpoint_is_named_and_the_previous_one_used(tmp_path, capsys):
@@ -159,7 +209,9 @@ def test_ctrl_c_finishes_the_chunk_saves_and_stops(tmp_path):
     (["planner.iterations=x"], "planner.iterations expects int"),
 ])
 def test_bad_cli_input_exits_2_with_one_line(arguments, message, capsys):
-    assert train_cli.main(["env=point_umaze", "agent=morefree", *arguments]) == 2
+    given = {argument.split("=")[0] for argument in arguments}  # a key given twice is its own error
+    base = [arg for arg in ("env=point_umaze", "agent=morefree") if arg.split("=")[0] not in given]
+    assert train_cli.main([*base, *arguments]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
 

@@ -200,7 +200,8 @@ def test_two_seeds_sharded_over_two_cpu_devices_match_one_device(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("", "seeds is empty"),
     ("0,0", "seeds must be distinct, got [0, 0]"),
-    ("0,-1", "seeds must be integers >= 0, got [0, -1]"),
+    ("0,-1", "seeds must be integers in 0..4294967295, got [0, -1]"),
+    ("0,4294967296", "seeds must be integers in 0..4294967295, got [0, 4294967296]"),
     ("0,x", "seeds must be comma-separated integers >= 0"),
     ("1.5", "seeds must be comma-separated integers >= 0"),
 ])

@@ -320,8 +320,14 @@ def latest_valid(
         checkpointer.close()
 
 
-def check_run_dir_config(run_dir, config_dict: dict, ignore: tuple[str, ...] = ()) -> None:
-    """Refuses a run dir whose config.json differs from `config_dict` (no-op for a new run dir)."""
+def check_run_dir_config(run_dir, config_dict: dict, ignore: tuple[str, ...] = ()) -> dict[str, list]:
+    """Refuses a run dir whose config.json differs from `config_dict` outside the `ignore` keys; returns the
+    ignored keys that did change, {key: [stored, new]} (empty for a new run dir)."""
     path = pathlib.Path(run_dir) / "config.json"
-    if path.exists():
-        refuse_config_change(json.loads(path.read_text()), config_dict, f"run dir {run_dir}", ignore)
+    if not path.exists():
+        return {}
+    stored = json.loads(path.read_text())
+    refuse_config_change(stored, config_dict, f"run dir {run_dir}", ignore)
+    stored_flat, current_flat = _flatten_dict(_as_json(stored)), _flatten_dict(_as_json(config_dict))
+    changed = config_differences(stored, config_dict)
+    return {key: [stored_flat.get(key), current_flat.get(key)] for key in changed}

@@ -13,6 +13,23 @@ import dataclasses
 from dataclasses import dataclass, field
 
 
+def _positive(config, *names: str) -> None:
+    """ValueError unless each field (a number, or every width of a non-empty tuple) is > 0."""
+    for name in names:
+        value = getattr(config, name)
+        values = value if isinstance(value, tuple) else (value,)
+        if not values or any(v <= 0 for v in values):
+            raise ValueError(f"{name} must be > 0{' (every entry)' if isinstance(value, tuple) else ''}, "
+                             f"got {value}")
+
+
+def _within(config, name: str, low: float, high: float) -> None:
+    value = getattr(config, name)
+    if not low <= value <= high:
+        raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
+
+
+
 @dataclass(frozen=True)
 class OptimizerConfig:
     """Adam with global-norm clipping and decoupled multiplicative weight decay (DreamerV2 optimiser)."""
@@ -21,6 +38,10 @@ class OptimizerConfig:
     eps: float = 1e-5
     clip: float = 100.0
     weight_decay: float = 1e-6
+
+    def __post_init__(self):
+        _positive(self, "lr", "eps", "clip")
+        _within(self, "weight_decay", 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -37,6 +58,13 @@ class WorldModelConfig:
     kl_scale: float = 1.0
     opt: OptimizerConfig = OptimizerConfig(lr=3e-4)
     unroll: int = 1  # lax.scan unroll of observe (performance only; bench_core unrolls to count FLOPs)
+
+    def __post_init__(self):
+        _positive(self, "deter", "hidden", "stoch", "min_std", "encoder_layers", "decoder_layers",
+                  "embed_head_layers", "unroll")
+        _within(self, "kl_balance", 0.0, 1.0)
+        if self.kl_free < 0 or self.kl_scale < 0:
+            raise ValueError(f"kl_free and kl_scale must be >= 0, got {self.kl_free}, {self.kl_scale}")
 
 
 @dataclass(frozen=True)
@@ -55,6 +83,14 @@ class ActorCriticConfig:
     actor_opt: OptimizerConfig = OptimizerConfig()
     critic_opt: OptimizerConfig = OptimizerConfig()
 
+    def __post_init__(self):
+        _positive(self, "actor_layers", "critic_layers", "actor_min_std", "horizon", "discount",
+                  "target_every", "unroll")
+        _within(self, "discount", 0.0, 1.0)
+        _within(self, "lambda_", 0.0, 1.0)
+        if self.entropy < 0:
+            raise ValueError(f"entropy must be >= 0, got {self.entropy}")
+
 
 @dataclass(frozen=True)
 class DistanceConfig:
@@ -62,6 +98,10 @@ class DistanceConfig:
     num_pairs: int = 256
     neg_factor: float = 0.0  # point maze 0.0; walker / ant / 3-stack 0.1
     opt: OptimizerConfig = OptimizerConfig()
+
+    def __post_init__(self):
+        _positive(self, "layers", "num_pairs")
+        _within(self, "neg_factor", 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -71,6 +111,11 @@ class ExploreConfig:
     opt: OptimizerConfig = OptimizerConfig(lr=3e-4)
     ac: ActorCriticConfig = ActorCriticConfig(discount=0.99)
 
+    def __post_init__(self):
+        _positive(self, "layers")
+        if self.members < 2:  # the exploration reward is the members' disagreement
+            raise ValueError(f"members must be >= 2, got {self.members}")
+
 
 @dataclass(frozen=True)
 class ReplayConfig:
@@ -78,6 +123,11 @@ class ReplayConfig:
     batch: int = 45
     length: int = 50
     max_bytes: int = 8 * 2**30  # memory the buffer may take; a larger capacity is a clear error
+
+    def __post_init__(self):
+        _positive(self, "capacity", "batch", "max_bytes")
+        if self.length < 2:
+            raise ValueError(f"length must be >= 2 (a sequence), got {self.length}")
 
 
 @dataclass(frozen=True)
@@ -89,6 +139,11 @@ class AgentConfig:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     alpha: float = 0.2  # imagination goals: alpha/2 eval goals, alpha/2 initial states, 1-alpha replay
     imag_starts: int = 0  # posterior states imagination starts from; 0 = every state of the batch (PEG)
+
+    def __post_init__(self):
+        _within(self, "alpha", 0.0, 2.0)  # 2: every imagination goal an evaluation goal (dreamer_gc)
+        if self.imag_starts < 0:
+            raise ValueError(f"imag_starts must be >= 0 (0: every posterior state), got {self.imag_starts}")
 
 
 def _paper() -> AgentConfig:

@@ -30,6 +30,8 @@ from morefree_jax.config import AgentConfig
 from morefree_jax.go_explore import ScheduleConfig
 from morefree_jax.planner import PlannerConfig
 
+MAX_SEED = 2**32 - 1  # jax.random.PRNGKey keeps the low 32 bits: larger seeds would collide
+
 
 class ConfigError(ValueError):
     """A bad override or config value (one-line message)."""
@@ -77,6 +79,8 @@ class RunConfig:
     def __post_init__(self):
         if self.total_steps is not None and self.total_steps <= 0:  # None: the task's budget
             raise ConfigError(f"run.total_steps must be > 0, got {self.total_steps}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ConfigError(f"run.seed must be in 0..{MAX_SEED} (JAX keys keep 32 bits), got {self.seed}")
         positive = ("eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
                     "log_every", "visitation_bins")
         for name in positive:
@@ -287,8 +291,11 @@ class Config:
 # CLI names of the run's identity; every other key is dotted: run.*, agent.*, planner.*, schedule.*, or a
 # group of the learner without the "agent." prefix (wm.deter=64).
 SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
-# Keys that may change when a run dir is resumed: extending a run's step budget continues it.
-RESUMABLE_KEYS = ("run.total_steps", "run.checkpoint_minutes", "run.seed_axis")
+# Keys that may change when a run dir is resumed: they change nothing computed (where the dir is, the step
+# budget, the cadence of logs, evaluations and checkpoints, how seeds share a program). A change is recorded
+# in the run dir's provenance.jsonl.
+RESUMABLE_KEYS = ("run.run_dir", "run.total_steps", "run.checkpoint_minutes", "run.seed_axis",
+                  "run.checkpoint_every", "run.keep_checkpoints", "run.log_every", "run.eval_every")
 # Filled from the task's default_config(); a run needs them resolved (resolve_config does it).
 TASK_RUN_KEYS = ("total_steps", "train_every", "subgoal_threshold")
 
@@ -313,16 +320,20 @@ def _full_key(key: str) -> str:
 
 def split_arguments(arguments) -> tuple[dict[str, str], list[str]]:
     """CLI words "key=value" -> (the short identity keys, the other overrides with full dotted keys)."""
-    short, overrides = {}, []
+    short, overrides, seen = {}, [], {}
     for argument in arguments:
         key, sep, value = argument.partition("=")
         key = key.strip()
         if not sep or not key:
             raise ConfigError(f"argument {argument!r} must look like key=value (e.g. env=point_umaze)")
+        full = f"run.{SHORT_KEYS[key]}" if key in SHORT_KEYS else _full_key(key)
+        if full in seen:  # "last wins" would silently drop one of them
+            raise ConfigError(f"{full} is given twice ({seen[full]} and {argument}); give it once")
+        seen[full] = argument
         if key in SHORT_KEYS:
             short[SHORT_KEYS[key]] = value.strip()
-            continue
-        overrides.append(f"{_full_key(key)}={value}")
+        else:
+            overrides.append(f"{full}={value}")
     return short, overrides
 
 
@@ -368,4 +379,7 @@ def resolve_config(arguments, valid_envs) -> Config:
     missing = [key for key in TASK_RUN_KEYS if getattr(config.run, key) is None]
     if missing:
         raise ConfigError(f"{', '.join(missing)} may not be none (the task's defaults fill them)")
+    if config.run.total_steps <= config.run.prefill:
+        raise ConfigError(f"steps ({config.run.total_steps}) must be larger than the prefill "
+                          f"({config.run.prefill} random steps before learning); lower prefill or raise it")
     return config

@@ -12,7 +12,8 @@ metrics.jsonl holds one JSON object per `log` call: "step", the caller's flat me
 fields, all named "time/..." (compare runs on the other keys). Resume contract: the loop logs a step's
 metrics BEFORE it saves that step's checkpoint; on resume from the checkpoint at step S, lines with
 step > S are dropped (they are logged again by the resumed run), so the resumed file has the same
-non-time lines as an uninterrupted run's. TensorBoard hides its events after S the same way (purge_step).
+non-time lines as an uninterrupted run's. TensorBoard's event files are cut back to S the same way
+(tb_events.py); `flush` (called before every checkpoint) makes sure all that S covers is on disk.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from morefree_jax.provenance import code_version
+from morefree_jax.tb_events import ScalarWriter, truncate_events
 
 PROGRESS_MODES = ("auto", "bar", "lines", "off")
 PROVENANCE_FILE = "provenance.jsonl"  # one line per start or resume: step, code commit, host, time
@@ -69,7 +71,8 @@ class RunLogger:
     """
 
     def __init__(self, run_dir, config_dict: dict, total_steps: int, resume_step: int | None = None,
-                 progress: str = "auto", line_every_s: float = 30.0, tensorboard: bool = True):
+                 progress: str = "auto", line_every_s: float = 30.0, tensorboard: bool = True,
+                 changes: dict | None = None):
         if progress not in PROGRESS_MODES:
             raise ValueError(f"progress must be one of {PROGRESS_MODES}, got {progress!r}")
         self.run_dir = pathlib.Path(run_dir)
@@ -80,7 +83,7 @@ class RunLogger:
         self.total_steps = total_steps
         self.metrics_path = self.run_dir / "metrics.jsonl"
         self._elapsed_offset = self._truncate_metrics(resume_step)
-        self._record_start(resume_step)
+        self._record_start(resume_step, changes or {})
         self._metrics_file = open(self.metrics_path, "a")  # noqa: SIM115 - kept open for the run
         self._start = time.perf_counter()
         self._last_step = resume_step or 0
@@ -91,10 +94,9 @@ class RunLogger:
         self._timers: dict[str, list[float]] = {}
         self._writer = None
         if tensorboard:
-            from tensorboardX import SummaryWriter
-
-            purge = None if resume_step is None else resume_step + 1
-            self._writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=purge)
+            # What was logged after the checkpoint is logged again (a fresh start: everything).
+            truncate_events(self.run_dir / "tb", -1 if resume_step is None else resume_step)
+            self._writer = ScalarWriter(self.run_dir / "tb")
         if progress == "auto":
             progress = "bar" if sys.stderr.isatty() else "lines"
         self._progress_mode = progress
@@ -104,10 +106,11 @@ class RunLogger:
 
             self._bar = tqdm(total=total_steps, initial=resume_step or 0, unit="step", dynamic_ncols=True)
 
-    def _record_start(self, resume_step: int | None) -> None:
-        """Appends this start (step, code commit, host, time) to provenance.jsonl (never truncated)."""
+    def _record_start(self, resume_step: int | None, changes: dict) -> None:
+        """Appends this start (step, code commit, host, time, settings changed since the last start:
+        {key: [old, new]}) to provenance.jsonl (never truncated)."""
         line = {"start_step": int(resume_step or 0), "resumed": resume_step is not None, **code_version(),
-                "host": socket.gethostname(), "time": time.time()}
+                "host": socket.gethostname(), "time": time.time(), "changed": changes}
         with open(self.run_dir / PROVENANCE_FILE, "a") as file:
             file.write(json.dumps(line) + "\n")
 
@@ -136,7 +139,7 @@ class RunLogger:
         if self._writer is not None:
             for name, value in record.items():
                 if name not in ("step", "time/wall"):
-                    self._writer.add_scalar(name, float(value), global_step=int(step))
+                    self._writer.add_scalar(name, float(value), int(step))
         if "eval/success" in record:
             self.last_success = float(record["eval/success"])
         self._show_progress(int(step), record.get("time/steps_per_s"))
@@ -200,6 +203,13 @@ class RunLogger:
             if len(durations) > 1:
                 metrics[f"time/{name}_s"] = float(np.mean(durations[1:]))
         return metrics
+
+    def flush(self) -> None:
+        """Puts everything logged so far on disk (before a checkpoint: what it covers is in every log)."""
+        self._metrics_file.flush()
+        os.fsync(self._metrics_file.fileno())
+        if self._writer is not None:
+            self._writer.flush()
 
     def close(self) -> None:
         self._metrics_file.flush()

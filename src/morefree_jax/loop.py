@@ -36,6 +36,7 @@ from morefree_jax.config_run import RESUMABLE_KEYS, Config, ConfigError, config_
 from morefree_jax.logger import RunLogger
 from morefree_jax.programs import Programs, compile_programs, seed_sharding, seed_slice, stack_seeds
 from morefree_jax.run_fns import RunFns, RunState, compiled_settings, make_run_fns
+from morefree_jax.run_lock import RunDirLock
 from morefree_jax.seeds import check_seeds, seed_configs
 
 
@@ -72,7 +73,19 @@ def train(config: Config, seeds=None, programs: Programs | None = None,
           or programs.num_seeds != len(seeds)):
         raise ConfigError("programs were compiled for another learner config or seed count; "
                           "build them with build_programs(config, len(seeds))")
-    return _Driver(seed_configs(config, seeds), programs, progress).run()
+    configs = seed_configs(config, seeds)
+    locks = []
+    try:  # one writer per run dir, held for the whole run (run_lock.py)
+        for seed_config in configs:
+            locks.append(RunDirLock(seed_config.run.resolved_run_dir).acquire())
+        return _Driver(configs, programs, progress).run()
+    except BaseException:
+        for lock in locks:
+            lock.remove_if_unused()  # a refused start leaves no empty run dir behind
+        raise
+    finally:
+        for lock in locks:
+            lock.release()
 
 
 class _Driver:
@@ -86,14 +99,18 @@ class _Driver:
         self.config_dicts = [config_to_dict(config) for config in configs]
         self.progress = progress
         self.last_save = time.monotonic()
+        self.changes: list[dict] = []  # per seed: resumable settings changed since the last start
+        self.loggers: list[RunLogger] = []
 
     def run(self) -> list[RunSummary]:
         state, steps, checkpointers, resumed = self.start()
         resume_step = steps if resumed else None
-        loggers = [RunLogger(run_dir, config_dict, self.settings.total_steps, resume_step=resume_step,
-                             progress=self.progress if index == 0 else "off")  # one progress line a group
-                   for index, (run_dir, config_dict) in enumerate(zip(self.run_dirs, self.config_dicts,
-                                                                      strict=True))]
+        self.loggers = loggers = [
+            RunLogger(run_dir, config_dict, self.settings.total_steps, resume_step=resume_step,
+                      progress=self.progress if index == 0 else "off",  # one progress line a group
+                      changes=changes)
+            for index, (run_dir, config_dict, changes) in enumerate(zip(
+                self.run_dirs, self.config_dicts, self.changes, strict=True))]
         stop, last = _StopFlag(), [{} for _ in self.seeds]
         try:
             if not resumed:
@@ -114,9 +131,9 @@ class _Driver:
 
     def start(self):
         """(state, env_steps, checkpointers, resumed) for fresh or resumed run dirs."""
-        checkpointers = []
+        checkpointers, self.changes = [], []
         for run_dir, config_dict in zip(self.run_dirs, self.config_dicts, strict=True):
-            check_run_dir_config(run_dir, config_dict, RESUMABLE_KEYS)
+            self.changes.append(check_run_dir_config(run_dir, config_dict, RESUMABLE_KEYS))
             checkpointers.append(RunCheckpointer(run_dir, config_dict, self.settings.checkpoint_every,
                                                  self.settings.keep_checkpoints,
                                                  ignore_config_keys=RESUMABLE_KEYS))
@@ -126,6 +143,10 @@ class _Driver:
         if restored is None:
             return fresh, 0, checkpointers, False
         states, steps = restored
+        where = f"{self.run_dirs[0]}/checkpoints/{steps}" + (f" and {len(self.seeds) - 1} more seeds"
+                                                            if len(self.seeds) > 1 else "")
+        changed = "".join(f"; {key}: {old} -> {new}" for key, (old, new) in self.changes[0].items())
+        print(f"resuming from step {steps} (checkpoint {where}){changed}", flush=True)
         return stack_seeds(states, self.programs.sharding), steps, checkpointers, True
 
     def warm_start(self, state: RunState, logger: RunLogger) -> tuple[RunState, int]:
@@ -180,7 +201,9 @@ class _Driver:
             self.save(checkpointers, state, steps)
 
     def save(self, checkpointers, state, steps: int) -> None:
-        """Every seed's own state into its own run dir, all at the same step."""
+        """Every seed's own state into its own run dir, all at the same step, after every log is on disk."""
+        for logger in self.loggers:
+            logger.flush()
         for index, checkpointer in enumerate(checkpointers):
             checkpointer.save(steps, seed_slice(state, index), {"env_steps": steps}, force=True)
         self.last_save = time.monotonic()
@@ -250,7 +273,7 @@ def restore_run(run_dir) -> tuple[RunFns, RunState, int]:
     fns = make_run_fns(config, envs_mjx.make(config.run.env))
     template = jax.jit(fns.init)(jax.random.PRNGKey(config.run.seed))
     restored = latest_valid(run_dir, template, config_to_dict(config),
-                            ignore_config_keys=(*RESUMABLE_KEYS, "run.run_dir"))
+                            ignore_config_keys=RESUMABLE_KEYS)
     if restored is None:
         raise CheckpointError(f"no checkpoint in {pathlib.Path(run_dir) / 'checkpoints'} yet")
     return fns, restored.state, restored.step

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from morefree_jax.config_run import Config, ConfigError
+from morefree_jax.config_run import MAX_SEED, Config, ConfigError
 
 
 def check_seeds(seeds) -> tuple[int, ...]:
@@ -15,8 +15,8 @@ def check_seeds(seeds) -> tuple[int, ...]:
     seeds = tuple(seeds)
     if not seeds:
         raise ConfigError("seeds is empty; give one or more distinct integers >= 0, e.g. seeds=0,1,2")
-    if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds):
-        raise ConfigError(f"seeds must be integers >= 0, got {list(seeds)}")
+    if any(isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= MAX_SEED for s in seeds):
+        raise ConfigError(f"seeds must be integers in 0..{MAX_SEED}, got {list(seeds)}")
     if len(set(seeds)) != len(seeds):
         raise ConfigError(f"seeds must be distinct, got {list(seeds)}")
     return seeds
