@@ -41,7 +41,7 @@ def disk_error_line(error: OSError) -> str:
         while not existing.exists() and existing != existing.parent:
             existing = existing.parent
         line += f"; {shutil.disk_usage(existing).free / 2**20:.1f} MiB free there"
-    return line + "; the last checkpoint is kept: free space and re-run the same command to resume"
+    return line + "; checkpoints already written are kept: free space and re-run the same command to resume"
 
 
 def split_seeds(argv: list[str]) -> tuple[tuple[int, ...] | None, list[str]]:

@@ -7,6 +7,7 @@ them across run dirs and budgets); the CLI subprocesses share a persistent compi
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pathlib
@@ -23,7 +24,7 @@ import numpy as np
 import pytest
 
 from experiments import train as train_cli
-from morefree_jax import loop
+from morefree_jax import checkpoint, loop
 from morefree_jax.checkpoint import ConfigMismatchError, latest_valid
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
@@ -160,6 +161,26 @@ def test_a_moved_run_dir_resumes_bit_for_bit(tmp_path):
     assert records_without_time(full_dir) == records_without_time(moved_dir)
     changed = json.loads((moved_dir / "provenance.jsonl").read_text().splitlines()[-1])["changed"]
     assert changed["run.run_dir"] == [str(first_dir), f"{moved_dir}/"]
+
+
+def test_a_full_disk_stops_with_the_last_checkpoint_intact(tmp_path, monkeypatch):
+    """The checkpoint after the first finds no space (disk_usage patched): one OSError naming the step's
+    dir, no partial checkpoint or temporary file left, the previous checkpoint loads."""
+    real_usage = checkpoint.shutil.disk_usage
+    saves = []
+
+    def full_after_first_save(path):
+        saves.append(path)
+        usage = real_usage(path)
+        return usage._replace(free=0) if len(saves) > 1 else usage
+
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage", full_after_first_save)
+    with pytest.raises(OSError) as error:
+        train("morefree", tmp_path, THREE_CHUNKS)
+    assert error.value.errno == errno.ENOSPC and error.value.filename.endswith(f"checkpoints/{TWO_CHUNKS}")
+    monkeypatch.undo()
+    assert not [p for p in tmp_path.rglob("*") if "tmp" in p.name], "temporary files left"
+    assert final_state("morefree", tmp_path)[0] == PREFILL + CHUNK  # the checkpoint before the failed one
 
 
 def test_corrupted_checkpoint_is_named_and_the_previous_one_used(tmp_path, capsys):

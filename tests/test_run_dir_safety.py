@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import multiprocessing
+import types
 
 import pytest
 
@@ -80,4 +81,35 @@ def test_a_failed_write_is_one_line_with_the_free_space(tmp_path):
     error = OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "run" / "metrics.jsonl"))
     line = train_cli.disk_error_line(error)
     assert line.startswith(f"could not write {tmp_path}/run/metrics.jsonl (No space left on device); ")
-    assert "MiB free there; the last checkpoint is kept" in line and "\n" not in line
+    assert "MiB free there; checkpoints already written are kept" in line and "\n" not in line
+
+
+def test_a_disk_full_at_start_is_one_line_and_leaves_no_run_dir(tmp_path, monkeypatch):
+    class FullDisk:  # the owner record cannot be written
+        loads = staticmethod(json.loads)
+
+        @staticmethod
+        def dumps(value):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(run_lock, "json", FullDisk)
+    lock = RunDirLock(tmp_path / "run")
+    expected = r"cannot write to run dir .*/run \(No space left on device; [\d.]+ MiB"
+    with pytest.raises(RunDirError, match=expected):
+        lock.acquire()
+    lock.remove_if_unused()
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_second_ctrl_c_ends_with_one_line_and_no_traceback(tmp_path, monkeypatch, capsys):
+    from morefree_jax import loop
+
+    def interrupted_twice(*args, **kwargs):
+        raise KeyboardInterrupt  # what _StopFlag raises on the second Ctrl-C
+
+    programs = types.SimpleNamespace(fns=types.SimpleNamespace(chunk_len=200, updates_per_chunk=10))
+    monkeypatch.setattr(loop, "build_programs", lambda config, num_seeds: programs)  # nothing compiles
+    monkeypatch.setattr(loop, "train", interrupted_twice)
+    assert train_cli.main([*DEBUG_ARGS, f"run_dir={tmp_path / 'run'}"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == "interrupted; re-run the same command to resume from the last checkpoint"

@@ -49,7 +49,11 @@ def _scalar(name: str, value: Any) -> float | int | bool:
 
 def _write_text_atomically(path: pathlib.Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
+    try:
+        tmp.write_text(text)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a failed write (full disk) leaves no temporary file
+        raise
     os.replace(tmp, path)
 
 
@@ -181,8 +185,12 @@ class RunLogger:
         plots/back_starts.npz (xy (n, 100, 2), stream_step (n,), step), replaced atomically at each call."""
         path = self.plots_dir / "back_starts.npz"
         temporary = path.with_name(path.name + ".tmp.npz")
-        np.savez(temporary, xy=np.asarray(xy, np.float32), stream_step=np.asarray(stream_step, np.int64),
-                 step=np.int64(step))
+        try:
+            np.savez(temporary, xy=np.asarray(xy, np.float32), stream_step=np.asarray(stream_step, np.int64),
+                     step=np.int64(step))
+        except OSError:
+            temporary.unlink(missing_ok=True)
+            raise
         os.replace(temporary, path)
 
     # ---- timers --------------------------------------------------------------------------------

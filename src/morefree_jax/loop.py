@@ -77,7 +77,8 @@ def train(config: Config, seeds=None, programs: Programs | None = None,
     locks = []
     try:  # one writer per run dir, held for the whole run (run_lock.py)
         for seed_config in configs:
-            locks.append(RunDirLock(seed_config.run.resolved_run_dir).acquire())
+            locks.append(RunDirLock(seed_config.run.resolved_run_dir))
+            locks[-1].acquire()
         return _Driver(configs, programs, progress).run()
     except BaseException:
         for lock in locks:

@@ -17,6 +17,7 @@ import fcntl
 import json
 import os
 import pathlib
+import shutil
 import socket
 import sys
 import time
@@ -69,24 +70,31 @@ class RunDirLock:
         if previous:
             print(f"taking over the lock of {self.run_dir} from {_owner_text(previous)}, which is no longer "
                   "running", file=sys.stderr, flush=True)
-        file.seek(0)
-        file.truncate()
-        file.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}))
-        file.flush()
         self._file = file
+        try:
+            file.seek(0)
+            file.truncate()
+            file.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()}))
+            file.flush()
+        except OSError as error:  # e.g. a full disk
+            self.release()
+            raise RunDirError(f"cannot write to run dir {self.run_dir} ({error.strerror}; "
+                              f"{shutil.disk_usage(self.run_dir).free / 2**20:.1f} MiB free)") from None
         return self
 
     def release(self) -> None:
         """Empties and unlocks the lock file (an empty lock file means: released cleanly)."""
-        if self._file is None:
+        file, self._file = self._file, None
+        if file is None:
             return
-        with contextlib.suppress(OSError):
-            self._file.seek(0)
-            self._file.truncate()
-            self._file.flush()
-        fcntl.flock(self._file, fcntl.LOCK_UN)
-        self._file.close()
-        self._file = None
+        with contextlib.suppress(OSError, ValueError):  # a full disk may refuse even the truncation
+            file.seek(0)
+            file.truncate()
+            file.flush()
+        with contextlib.suppress(OSError, ValueError):
+            fcntl.flock(file, fcntl.LOCK_UN)
+        with contextlib.suppress(OSError, ValueError):
+            file.close()
 
     def remove_if_unused(self) -> None:
         """After a refused start: deletes the run dir this lock created if nothing but the lock is in it."""
