@@ -40,8 +40,14 @@ DEBUG_ARGS = (
 )
 
 
+def debug_args(*extra: str) -> list[str]:
+    """DEBUG_ARGS with the keys `extra` sets replaced by extra's values (a key given twice is an error)."""
+    keys = {argument.split("=")[0] for argument in extra}
+    return [argument for argument in DEBUG_ARGS if argument.split("=")[0] not in keys] + list(extra)
+
+
 def debug_config(agent: str, *extra: str):
-    return resolve_config([*DEBUG_ARGS, f"agent={agent}", *extra], envs_mjx.ALL_ENVS)
+    return resolve_config(debug_args(f"agent={agent}", *extra), envs_mjx.ALL_ENVS)
 
 
 @functools.lru_cache(maxsize=1)

@@ -33,22 +33,23 @@ from morefree_jax.seeds import parse_seeds
 from tests.loop_helpers import (
     CHUNK,
     COMPILATION_CACHE,
-    DEBUG_ARGS,
+    debug_args,
     debug_config,
     debug_programs,
     sigkill_once_written,
 )
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-PREFILL = 20  # DEBUG_ARGS
+PREFILL = 20  # loop_helpers.DEBUG_ARGS
 THREE_CHUNKS = PREFILL + 3 * CHUNK
 SEEDS = (0, 1)
 
 
 def _cli(run_dir, steps: int, *extra: str) -> list[str]:
-    debug_args = [arg for arg in DEBUG_ARGS if not arg.startswith("seed=")]
-    return [sys.executable, "-m", "experiments.train", *debug_args, "agent=morefree", "seeds=0,1",
-            f"steps={steps}", f"checkpoint_every={2 * CHUNK}", f"run_dir={run_dir}", *extra]
+    arguments = [arg for arg in debug_args(f"checkpoint_every={2 * CHUNK}", *extra)
+                 if not arg.startswith("seed=")]
+    return [sys.executable, "-m", "experiments.train", *arguments, "agent=morefree", "seeds=0,1",
+            f"steps={steps}", f"run_dir={run_dir}"]
 
 
 def _cli_env(**extra) -> dict:
