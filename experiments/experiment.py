@@ -105,10 +105,10 @@ def progress_line(settings: dict, agent: str, process) -> str:
 def _start(settings, agent, passed, core):
     directory = agent_dir(settings, agent)
     directory.mkdir(parents=True, exist_ok=True)
-    log = open(directory / "train.log", "a")  # noqa: SIM115 - handed to the child
     pin = (lambda: os.sched_setaffinity(0, {core})) if core is not None else None
-    return subprocess.Popen(train_command(settings, agent, passed), stdout=log, stderr=subprocess.STDOUT,
-                            preexec_fn=pin, start_new_session=True)
+    with open(directory / "train.log", "a") as log:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen(train_command(settings, agent, passed), stdout=log, stderr=subprocess.STDOUT,
+                                preexec_fn=pin, start_new_session=True)
 
 
 def run_agents(settings: dict, passed: list[str]) -> dict[str, int]:

@@ -132,12 +132,17 @@ def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
     return np.nansum(distances < radius, axis=1) / len(trajectory)
 
 
+def _load_xy(path) -> np.ndarray:
+    with np.load(path) as data:
+        return data["xy"]
+
+
 def back_starts_figure(task, groups, geometry: TaskGeometry):
     agents = []
     for (t, agent), group in sorted(groups.items()):
         files = [r.run_dir / "plots" / "back_starts.npz" for r in group]
         if t == task and any(f.exists() for f in files):
-            agents.append((agent, [np.load(f)["xy"] for f in files if f.exists()]))
+            agents.append((agent, [_load_xy(f) for f in files if f.exists()]))
     if not agents:
         return None
     fig, axes = _panels(len(agents))

@@ -1,0 +1,1 @@
+"""Model-free baselines of the paper (reference/baselines.md): the SAC learner they share (sac.py)."""
