@@ -209,9 +209,9 @@ def main(argv: list[str]) -> int:
     except NoRunsError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    groups = run_groups.group_runs(runs, skipped)
     for line in skipped:
         print(line)
-    groups = run_groups.group_runs(runs)
     tasks = sorted({task for task, _ in groups})
     drawn = code_version()["commit"]
     stamp_for = lambda commits: f"runs: {' '.join(commits)} · drawn: {(drawn or 'unknown')[:7]}"  # noqa: E731

@@ -99,13 +99,21 @@ def find_runs(root, task: str | None = None) -> tuple[list[RunRecord], list[str]
     return runs, skipped
 
 
-def group_runs(runs: list[RunRecord]) -> dict[tuple[str, str], list[RunRecord]]:
-    """{(task, agent): runs sorted by seed}; a seed present twice (two copies of one run) keeps the first."""
-    groups: dict[tuple[str, str], list[RunRecord]] = {}
+Groups = dict[tuple[str, str], list["RunRecord"]]
+
+
+def group_runs(runs: list[RunRecord], skipped: list[str] | None = None) -> Groups:
+    """{(task, agent): runs sorted by seed}. A seed present twice (a copy, an archived run) keeps the first
+    by path; a line saying which one is kept is appended to `skipped` when given."""
+    groups: Groups = {}
     for run in sorted(runs, key=lambda r: (r.task, r.agent, r.seed, str(r.run_dir))):
         group = groups.setdefault((run.task, run.agent), [])
-        if all(other.seed != run.seed for other in group):
+        kept = next((other for other in group if other.seed == run.seed), None)
+        if kept is None:
             group.append(run)
+        elif skipped is not None:
+            skipped.append(f"skipped {run.run_dir}: seed {run.seed} of {run.agent} on {run.task} is taken "
+                           f"from {kept.run_dir} (give RUNS a narrower directory to choose)")
     return groups
 
 

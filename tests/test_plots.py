@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -59,6 +60,7 @@ def test_curve_is_the_mean_and_standard_error_over_seeds(runs):
 
 def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0, 0, 0])
+    shutil.copytree(runs / "point_umaze" / "rf_peg" / "seed1", runs / "zz_copy" / "seed1")  # a second copy
     (runs / "broken").mkdir()
     (runs / "broken" / "config.json").write_text("{}")
     out = tmp_path / "results"
@@ -66,6 +68,7 @@ def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "skipped" in printed and "broken: no metrics.jsonl" in printed
     assert "holds task tabletop, not point_umaze" in printed
+    assert f"skipped {runs}/zz_copy/seed1: seed 1 of rf_peg on point_umaze is taken from " in printed
     names = {path.name for path in out.iterdir()}
     for figure in ("success", "final_success", "task_relevant", "visitation", "back_starts"):
         assert {f"point_umaze_{figure}.png", f"point_umaze_{figure}.svg"} <= names
