@@ -34,7 +34,7 @@ PROGRESS_EVERY_S = 60.0
 def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
     """({task, agents, seeds, steps, parallel, out}, the arguments passed on to every train command)."""
     import envs_mjx
-    from morefree_jax.variants import VARIANTS
+    from morefree_jax.variants import AGENTS
 
     own, passed = {}, []
     for arg in argv:
@@ -50,8 +50,8 @@ def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
     if own.get("task") not in envs_mjx.ALL_ENVS:
         raise ConfigError(f"task={own.get('task')!r} is not a task; valid: {', '.join(envs_mjx.ALL_ENVS)}")
     agents = [a for a in own.get("agents", "morefree,rf_peg").split(",") if a]
-    if not agents or any(a not in VARIANTS for a in agents) or len(set(agents)) != len(agents):
-        raise ConfigError(f"agents must be distinct names among {', '.join(VARIANTS)}; "
+    if not agents or any(a not in AGENTS for a in agents) or len(set(agents)) != len(agents):
+        raise ConfigError(f"agents must be distinct names among {', '.join(AGENTS)}; "
                           f"got {','.join(agents) or '(none)'}")
     settings = {"task": own["task"], "agents": agents, "seeds": parse_seeds(own.get("seeds", "0,1,2")),
                 "steps": own.get("steps"), "out": own.get("out", "results")}

@@ -80,10 +80,19 @@ def _as_json(tree: dict) -> dict:
     return json.loads(json.dumps(tree))
 
 
+# Config sections added after run dirs existed. A stored config without one of them was written by a run of
+# an agent that does not read it (the `baseline` keys belong to the model-free agents, which always wrote
+# them), so such a run dir resumes.
+LATER_SECTIONS = ("baseline",)
+
+
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
-    """Dotted keys whose values differ between two nested config dicts (missing on one side counts).
-    Both are compared in their JSON form (tuples and lists are equal)."""
+    """Dotted keys whose values differ between two nested config dicts (missing on one side counts, except
+    a LATER_SECTIONS section the stored config lacks). Both are compared in their JSON form (tuples and
+    lists are equal)."""
     stored_flat, current_flat = _flatten_dict(_as_json(stored)), _flatten_dict(_as_json(current))
+    later = tuple(f"{section}." for section in LATER_SECTIONS if section not in stored)
+    current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}
     keys = sorted(set(stored_flat) | set(current_flat))
     absent = "<absent>"
     return [k for k in keys if k not in ignore and stored_flat.get(k, absent) != current_flat.get(k, absent)]

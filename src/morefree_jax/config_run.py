@@ -26,6 +26,7 @@ import types
 import typing
 from typing import Any, Literal
 
+from morefree_jax.baselines.config import ModelFreeConfig
 from morefree_jax.config import AgentConfig
 from morefree_jax.go_explore import ScheduleConfig
 from morefree_jax.planner import PlannerConfig
@@ -280,12 +281,15 @@ def config_from_dict(config_cls, data: dict, prefix: str = ""):
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Everything a run depends on, written to <run_dir>/config.json: the training run, the learner
-    (core presets), the goal search and the goal schedule (set by the variant, `variants.py`)."""
+    (core presets), the goal search and the goal schedule (set by the variant, `variants.py`), and the
+    model-free baselines' learners (baselines/config.py; only oracle_sac and r3l read them, and they read
+    nothing of agent, planner and schedule)."""
 
     run: RunConfig = dataclasses.field(default_factory=RunConfig)
     agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
     planner: PlannerConfig = dataclasses.field(default_factory=PlannerConfig)
     schedule: ScheduleConfig = dataclasses.field(default_factory=ScheduleConfig)
+    baseline: ModelFreeConfig = dataclasses.field(default_factory=ModelFreeConfig)
 
 
 # CLI names of the run's identity; every other key is dotted: run.*, agent.*, planner.*, schedule.*, or a
@@ -313,6 +317,7 @@ def _full_key(key: str) -> str:
         raise ConfigError("alpha is ambiguous; set agent.alpha (imagination) or schedule.alpha (collection)")
     run_keys = [name for name in _field_types(RunConfig) if name not in SHORT_KEYS.values()]
     shown = ", ".join([*SHORT_KEYS, *run_keys, "agent.<key>", "planner.<key>", "schedule.<key>",
+                       "baseline.<key>",
                        *(f"{name}.<key>" for name, tp in _field_types(AgentConfig).items()
                          if dataclasses.is_dataclass(tp))])
     raise ConfigError(f"unknown key {key!r}; valid keys: {shown}")
@@ -354,7 +359,7 @@ def resolve_config(arguments, valid_envs) -> Config:
     values, train ratio, budget, prefill, planner); the variant (schedule and imagination goals); the
     user's keys (steps, seed and the dotted overrides). Errors are one-line ConfigErrors."""
     from morefree_jax.config import PRESETS, preset
-    from morefree_jax.variants import VARIANTS, apply_variant
+    from morefree_jax.variants import AGENTS, apply_variant
 
     short, overrides = split_arguments(arguments)
     identity = {key: short.pop(key) for key in ("env", "agent", "preset") if key in short}
@@ -365,7 +370,7 @@ def resolve_config(arguments, valid_envs) -> Config:
             overrides.remove(override)
     run = apply_overrides(RunConfig(), [f"{key}={value}" for key, value in identity.items()])
     check_choice("env", run.env, valid_envs)
-    check_choice("agent", run.agent, VARIANTS)
+    check_choice("agent", run.agent, AGENTS)
     check_choice("preset", run.preset, PRESETS)
     config = Config(run=run, agent=preset(run.preset))
     config = apply_overrides(config, task_overrides(run.env))

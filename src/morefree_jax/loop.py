@@ -154,6 +154,8 @@ class _Driver:
         """Prefill with random actions, then PEG's pretraining updates (fresh runs only)."""
         with logger.timer("prefill"):
             state = jax.block_until_ready(self.programs.prefill(state))
+        if self.programs.train_updates is None:  # model-free agents: collect trains
+            return state, self.settings.prefill
         for _ in range(math.ceil(self.settings.pretrain / self.programs.fns.updates_per_chunk)):
             state, _ = self.programs.train_updates(state)
         return state, self.settings.prefill
@@ -161,6 +163,8 @@ class _Driver:
     def chunk(self, state: RunState, logger: RunLogger):
         with logger.timer("collect"):
             state, collect_metrics = jax.block_until_ready(self.programs.collect(state))
+        if self.programs.train_updates is None:  # model-free agents: the collect chunk trained too
+            return state, collect_metrics
         with logger.timer("train"):
             state, train_metrics = jax.block_until_ready(self.programs.train_updates(state))
         return state, {**collect_metrics, **train_metrics}

@@ -46,7 +46,7 @@ class Programs(NamedTuple):
     init: Callable  # keys (S, 2) -> RunState (S, ...)
     prefill: Callable
     collect: Callable
-    train_updates: Callable
+    train_updates: Callable | None
     evaluate: Callable  # (AgentState (S, ...), keys (S, 2)) -> (metrics (S,), EvalResult (S, ...))
     visitation: Callable
 
@@ -87,6 +87,8 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
     seed_axis = resolve_seed_axis(seed_axis)
 
     def program(fn, donate: bool = False):
+        if fn is None:  # a run function the agent does not have (model-free: no train_updates)
+            return None
         if sharding is None:
             over_seeds = _over_seeds(fn, num_seeds, seed_axis)
         else:  # each device runs its own share of the seeds
@@ -115,6 +117,6 @@ def stack_seeds(trees: list, sharding: NamedSharding | None = None):
 def jit_run_fns(fns: RunFns) -> RunFns:
     """The run functions jitted one seed at a time, states donated (notebooks, benchmarks, tests)."""
     donated = {name: jax.jit(getattr(fns, name), donate_argnums=0)
-               for name in ("prefill", "collect", "train_updates")}
+               for name in ("prefill", "collect", "train_updates") if getattr(fns, name) is not None}
     return fns._replace(init=jax.jit(fns.init), evaluate=jax.jit(fns.evaluate),
                         visitation=jax.jit(fns.visitation), **donated)

@@ -32,7 +32,7 @@ from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitatio
 from morefree_jax.go_explore import GOAL_TYPE_NAMES, GoalType, ScheduleState, init_schedule
 from morefree_jax.imagination import GoalPools
 from morefree_jax.planner import PlannerState, start_search
-from morefree_jax.variants import variant
+from morefree_jax.variants import is_model_free, variant
 
 GOAL_POOL_SIZE = 64  # evaluation goals / initial states sampled per chunk for the imagination goal mix
 
@@ -65,7 +65,7 @@ class RunFns(NamedTuple):
     init: Callable  # key -> RunState
     prefill: Callable  # RunState -> RunState
     collect: Callable  # RunState -> (RunState, metrics)
-    train_updates: Callable  # RunState -> (RunState, metrics)
+    train_updates: Callable | None  # RunState -> (RunState, metrics); None: collect also trains
     evaluate: Callable  # (AgentState, key) -> (metrics, EvalResult)
     visitation: Callable  # ReplayState -> (task-relevant fraction, xy histogram)
     env: Any
@@ -78,7 +78,8 @@ class RunFns(NamedTuple):
 def compiled_settings(config: Config) -> tuple:
     """The parts of `config` the run functions depend on; equal settings give identical functions."""
     run = config.run
-    return (config.agent, config.planner, config.schedule, *(getattr(run, key) for key in COMPILED_RUN_KEYS))
+    return (config.agent, config.planner, config.schedule, config.baseline,
+            *(getattr(run, key) for key in COMPILED_RUN_KEYS))
 
 
 def keep_if_finite(new_state, old_state):
@@ -105,7 +106,12 @@ def check_run_config(config: Config, env) -> None:
 
 
 def make_run_fns(config: Config, env, agent: Agent | None = None) -> RunFns:
-    """The run's pure functions for `env` (agent: built from config.agent unless given)."""
+    """The run's pure functions for `env` (agent: built from config.agent unless given). Model-free agents
+    get theirs from baselines/run_fns.py (same contract; `train_updates` None: their collect trains)."""
+    if is_model_free(config.run.agent):
+        from morefree_jax.baselines.run_fns import make_model_free_fns
+
+        return make_model_free_fns(config, env)
     check_run_config(config, env)
     agent = agent or make_agent(config.agent, EnvSpec.from_env(env))
     run = config.run

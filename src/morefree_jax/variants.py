@@ -15,6 +15,11 @@ Every variant is the same learner; they differ only in where goals come from:
     mf_no_imag    ablation: Back-and-Forth Go-Explore only (imagination as rf_peg)              [paper 6]
     mf_task_only  ablation: alpha 1 (only task goals in collection and imagination)             [paper 6]
 
+The model-free baselines (baselines/agents.py) are agents of the same runs but other learners:
+
+    oracle_sac    episodic SAC on the evaluation task with its sparse reward: the only agent with resets
+    r3l           R3L: forward SAC on a learned goal classifier, backward RND exploration, reset-free
+
 dreamer_gc sets AgentConfig.alpha = 2: the imagination mix draws an evaluation goal with probability
 alpha/2, so 2 makes every imagination goal an evaluation goal without a separate switch in the core.
 """
@@ -23,6 +28,10 @@ from __future__ import annotations
 
 import dataclasses
 from typing import NamedTuple
+
+from morefree_jax.baselines.config import MODEL_FREE_AGENTS
+
+SEED_STEPS = 10_000  # the model-free agents' seed phase (MEDAL num_seed_frames), as run.prefill
 
 
 class Variant(NamedTuple):
@@ -44,6 +53,14 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
+# Every agent name a run accepts, with its one-line description.
+AGENTS: dict[str, str] = {**{name: v.description for name, v in VARIANTS.items()}, **MODEL_FREE_AGENTS}
+
+
+def is_model_free(name: str) -> bool:
+    return name in MODEL_FREE_AGENTS
+
+
 def variant(name: str) -> Variant:
     """The named variant; unknown names are an error listing the valid ones."""
     if name not in VARIANTS:
@@ -54,7 +71,10 @@ def variant(name: str) -> Variant:
 def apply_variant(config, name: str):
     """The root config (config_run.Config) with the variant's schedule and imagination settings.
     Planner goals are searched afresh for every planner chunk; episodic PEG makes its one goal choice per
-    hard-reset segment, so it searches once per segment (paper appendix, baselines)."""
+    hard-reset segment, so it searches once per segment (paper appendix, baselines). A model-free agent
+    gets MEDAL's 10,000 seed steps as its prefill and nothing else (it reads none of the learner keys)."""
+    if is_model_free(name):
+        return dataclasses.replace(config, run=dataclasses.replace(config.run, prefill=SEED_STEPS))
     chosen = variant(name)
     schedule = dataclasses.replace(config.schedule, kind=chosen.schedule_kind, alpha=chosen.collect_alpha)
     agent = dataclasses.replace(config.agent, alpha=chosen.imagination_alpha)

@@ -17,7 +17,6 @@ Adam with its defaults at lr 3e-4 for all three, initial alpha 1, target entropy
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -26,34 +25,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from morefree_jax.baselines.config import SACConfig
 from morefree_jax.networks import NetState, gradient_update, init_net_state
-
-_KERNEL_INIT = nn.initializers.xavier_uniform()
-
-
-@dataclasses.dataclass(frozen=True)
-class SACConfig:
-    """baselines.md section 2 (MEDAL `cfgs/oracle.yaml`, `agents.py`). target_entropy None: -|A|/2."""
-
-    feature_dim: int = 50
-    hidden_dim: int = 256
-    lr: float = 3e-4
-    discount: float = 0.99
-    tau: float = 0.005
-    reward_scale: float = 10.0
-    init_temperature: float = 1.0
-    target_entropy: float | None = None
-    log_std_min: float = -20.0
-    log_std_max: float = 2.0
-    batch_size: int = 256
-
-    def __post_init__(self):
-        for name in ("feature_dim", "hidden_dim", "lr", "init_temperature", "batch_size"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("discount", "tau"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
 
 class SACBatch(NamedTuple):
@@ -65,7 +38,8 @@ class SACBatch(NamedTuple):
 
 
 def _dense(features: int) -> nn.Dense:
-    return nn.Dense(features, kernel_init=_KERNEL_INIT, bias_init=nn.initializers.zeros)
+    # built here, not at import: making an initializer starts JAX's backend (importing changes nothing)
+    return nn.Dense(features, kernel_init=nn.initializers.xavier_uniform(), bias_init=nn.initializers.zeros)
 
 
 class _Trunk(nn.Module):

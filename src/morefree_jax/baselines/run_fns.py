@@ -1,0 +1,197 @@
+"""The run functions of the model-free agents, with the same RunFns contract as the world-model agents
+(morefree_jax.run_fns), so loop.train, the programs over seeds, checkpoints, evaluation, logs and plots
+serve both.
+
+    fns = make_model_free_fns(config, env)       # config.run.agent in ("oracle_sac", "r3l")
+    state = fns.prefill(fns.init(key))           # the seed phase: uniform random actions, no updates
+    state, metrics = fns.collect(state)          # one fused chunk: act, env step, store, one SAC update
+
+`collect` is the whole training step: each of its `config.baseline.chunk_len` env steps, inside one
+`lax.scan`, picks the action, steps the env, writes the transition into the device replay and runs the
+acting agent's SAC update (UTD 1), with no host round trip. There is no separate train call
+(`train_updates` is None). The stream is episodic for oracle_sac and reset-free (hard resets only) for
+r3l (baselines/agents.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from morefree_jax.back_starts import BackStarts, init_back_starts
+from morefree_jax.baselines import sac
+from morefree_jax.baselines.agents import FORWARD, make_model_free_agent
+from morefree_jax.baselines.buffer import Stored, TransitionBuffer, init_buffer, insert_where
+from morefree_jax.batching import lazy_cond
+from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation
+
+
+@struct.dataclass
+class ModelFreeStream:
+    """The env stream: the current goal, who acts (FORWARD / BACKWARD), steps into the episode or
+    segment, and the stream position (drives r3l's hard resets)."""
+
+    env_state: Any
+    goal: jax.Array
+    direction: jax.Array
+    segment_step: jax.Array
+    steps: jax.Array
+
+
+@struct.dataclass
+class ModelFreeRunState:
+    """Everything a model-free run needs to continue exactly. replay: one buffer per direction.
+    back_starts: always empty (no agent here has a back phase); kept so the driver reads every run alike."""
+
+    agent: Any
+    replay: tuple[TransitionBuffer, ...]
+    stream: ModelFreeStream
+    key: jax.Array
+    back_starts: BackStarts
+
+
+@dataclasses.dataclass(frozen=True)
+class ForwardPolicy:
+    """The forward SAC policy behind the agent interface evaluate_policy uses (deterministic: tanh of the
+    Gaussian mean, as MEDAL evaluates; no latent)."""
+
+    learner: Any
+
+    def goal_context(self, agent_state, goals):
+        return goals
+
+    def initial_latent(self, shape=()):
+        return jnp.zeros((*shape, 1))
+
+    def act(self, agent_state, latent, prev_action, obs, goal, key, mode):
+        params = self.learner.forward_sac(agent_state).actor.params
+        obs_goal = jnp.concatenate([obs, goal], -1)
+        return sac.act(self.learner.config.sac, params, obs_goal, key, deterministic=True), latent
+
+
+def make_model_free_fns(config, env):
+    """RunFns (morefree_jax.run_fns) of a model-free agent."""
+    from morefree_jax.run_fns import RunFns  # here: run_fns imports this module to dispatch
+
+    parts = _Parts(config, env, make_model_free_agent(config.run.agent, config.baseline, env))
+    return RunFns(parts.init, parts.prefill, parts.collect, None, parts.evaluate, parts.visitation, env,
+                  ForwardPolicy(parts.learner), config.baseline.chunk_len, config.baseline.chunk_len, config)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Parts:
+    config: Any
+    env: Any
+    learner: Any
+
+    @property
+    def hard_reset_every(self) -> int:
+        return self.config.run.hard_reset_every or self.env.hard_reset_every
+
+    def init(self, key) -> ModelFreeRunState:
+        key_agent, key_reset, key_goal, key_run = jax.random.split(key, 4)
+        size, capacity = self.env.observation_size, self.config.baseline.replay_capacity
+        stream = ModelFreeStream(env_state=self.env.reset(key_reset), goal=self.env.eval_goals(key_goal),
+                                 direction=jnp.asarray(FORWARD, jnp.int32),
+                                 segment_step=jnp.zeros((), jnp.int32), steps=jnp.zeros((), jnp.int32))
+        buffers = tuple(init_buffer(capacity, size, self.env.action_size)
+                        for _ in range(self.learner.num_buffers))
+        return ModelFreeRunState(agent=self.learner.init(key_agent), replay=buffers, stream=stream,
+                                 key=key_run, back_starts=init_back_starts())
+
+    def prefill(self, state: ModelFreeRunState) -> ModelFreeRunState:
+        return self.run_steps(state, self.config.run.prefill, learn=False)[0]
+
+    def collect(self, state: ModelFreeRunState):
+        state, records = self.run_steps(state, self.config.baseline.chunk_len, learn=True)
+        return state, self.chunk_metrics(state, records)
+
+    def run_steps(self, state: ModelFreeRunState, length: int, learn: bool):
+        key, key_steps = jax.random.split(state.key)
+        step = lambda carry, k: self.step(carry, k, learn)  # noqa: E731
+        (agent, replay, stream), records = jax.lax.scan(step, (state.agent, state.replay, state.stream),
+                                                        jax.random.split(key_steps, length))
+        return state.replace(agent=agent, replay=replay, stream=stream, key=key), records
+
+    def step(self, carry, key, learn: bool):
+        """One env step of the stream (module docstring); `learn` False is the seed phase."""
+        agent, buffers, stream = carry
+        key_act, key_update, key_next = jax.random.split(key, 3)
+        obs, goal = stream.env_state.obs, stream.goal
+        if learn:
+            action = self.learner.act(agent, stream.direction, jnp.concatenate([obs, goal]), key_act)
+        else:
+            action = jax.random.uniform(key_act, (self.env.action_size,), minval=-1.0, maxval=1.0)
+        env_state = self.env.step(stream.env_state, action)
+        success = self.env.success(env_state.obs, goal) & (stream.direction == FORWARD)
+        end, reset = self.segment_end(stream, success)
+        stored = Stored(obs, goal, action, success.astype(jnp.float32), env_state.obs, 1.0 - end)
+        buffers = tuple(insert_where(buffer, stored, stream.direction == index)
+                        for index, buffer in enumerate(buffers))
+        agent = self.learner.observe(agent, env_state.obs)
+        metrics = {}
+        if learn:
+            agent, metrics = self.learner.update(agent, buffers, stream.direction, stream.steps, key_update)
+        record = {"success": success, "end": end, "direction": stream.direction, **metrics}
+        return (agent, buffers, self.next_segment(stream, env_state, end, reset, key_next)), record
+
+    def segment_end(self, stream: ModelFreeStream, success):
+        """(the episode or segment ends on this step, the env resets after it)."""
+        steps_in = stream.segment_step + 1
+        if self.learner.episodic:
+            end = success | (steps_in >= self.env.eval_episode_length)
+            return end, end
+        hard_reset = (stream.steps + 1) % self.hard_reset_every == 0
+        return success | (steps_in >= self.config.baseline.switch_every) | hard_reset, hard_reset
+
+    def next_segment(self, stream: ModelFreeStream, env_state, end, reset, key) -> ModelFreeStream:
+        """After an end: the other direction (forward after a reset), with a fresh goal of its kind."""
+        key_reset, key_eval, key_initial = jax.random.split(key, 3)
+        env_state = lazy_cond(reset, lambda: self.env.reset(key_reset), lambda: env_state)
+        flipped = jnp.where(reset | self.learner.episodic, FORWARD, 1 - stream.direction)
+        direction = jnp.where(end, flipped, stream.direction).astype(jnp.int32)
+        fresh_goal = jnp.where(direction == FORWARD, self.env.eval_goals(key_eval),
+                               self.env.initial_states(key_initial))
+        return ModelFreeStream(env_state=env_state, goal=jnp.where(end, fresh_goal, stream.goal),
+                               direction=direction, segment_step=jnp.where(end, 0, stream.segment_step + 1),
+                               steps=stream.steps + 1)
+
+    def chunk_metrics(self, state: ModelFreeRunState, records: dict) -> dict:
+        forward = (records.pop("direction") == FORWARD).astype(jnp.float32)
+        metrics = {"stream/successes": jnp.sum(records.pop("success").astype(jnp.float32)),
+                   "stream/segments": jnp.sum(records.pop("end").astype(jnp.float32)),
+                   "stream/forward_share": jnp.mean(forward)}
+        masks = {"forward": forward, "backward": 1.0 - forward}
+        for name, values in records.items():
+            if name.startswith("sac/") and self.learner.num_buffers == 1:
+                metrics[name] = jnp.mean(values)
+            elif name.startswith("sac/"):
+                for direction, mask in masks.items():  # each agent's updates only
+                    metrics[f"{direction}/{name[4:]}"] = jnp.sum(values * mask) / jnp.maximum(mask.sum(), 1)
+            elif name == "r3l/rnd_loss":
+                metrics[name] = jnp.sum(values) / jnp.maximum(masks["backward"].sum(), 1)
+            else:  # the classifier: updated every train_every steps
+                every = self.config.baseline.classifier.train_every
+                metrics[name] = jnp.sum(values) / jnp.maximum(jnp.ceil(len(values) / every), 1)
+        updates = [getattr(state.agent, part).updates for part in ("forward", "backward")
+                   if hasattr(state.agent, part)] or [state.agent.updates]
+        metrics["train/updates"] = sum(updates).astype(jnp.float32)
+        metrics["replay/size"] = sum(buffer.count for buffer in state.replay).astype(jnp.float32)
+        return metrics
+
+    def evaluate(self, agent_state, key):
+        result = evaluate_policy(self.env, ForwardPolicy(self.learner), agent_state, key,
+                                 self.config.run.eval_episodes)
+        return evaluation_metrics(result), result
+
+    def visitation(self, replay: tuple[TransitionBuffer, ...]):
+        """Over all buffers: the task-relevant share and the xy histogram (evaluate.visitation)."""
+        parts = [visitation(self.env, buffer, self.config.run.visitation_bins) for buffer in replay]
+        sizes = [buffer.size.astype(jnp.float32) for buffer in replay]
+        fraction = sum(f * s for (f, _), s in zip(parts, sizes, strict=True)) / jnp.maximum(sum(sizes), 1.0)
+        return fraction, sum(histogram for _, histogram in parts)
+
