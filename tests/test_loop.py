@@ -66,7 +66,14 @@ def records_without_time(run_dir) -> list[dict]:
             for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
 
 
-@pytest.mark.parametrize("agent", list(VARIANTS))
+# The ablations combine code paths the paper agents already run (mf_no_bfge: rf_peg's schedule with the
+# imagination mix; mf_no_imag and mf_task_only: morefree's schedule with alpha 0 or 1); their whole runs
+# (~55 s of compiles each) are in the slow suite, their settings in test_variants.py.
+COMBINED_PATHS = ("mf_no_bfge", "mf_no_imag", "mf_task_only")
+
+
+@pytest.mark.parametrize("agent", [pytest.param(agent, marks=pytest.mark.slow) if agent in COMBINED_PATHS
+                                   else agent for agent in VARIANTS])
 def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
     summary = train(agent, tmp_path, TWO_CHUNKS)
     assert summary.env_steps == TWO_CHUNKS and not summary.interrupted

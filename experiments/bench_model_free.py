@@ -1,0 +1,127 @@
+"""Benchmark of the model-free baselines: the fused chunk per task and the SAC update against PyTorch.
+
+    PYTHONPATH=src:. python -m experiments.bench --only model_free [--quick]
+
+Rows {"section", "name", "value", "unit", "note"}:
+  <task>_<agent>_steps_per_s   env steps/s of the fused chunk (policy, env step, replay insert and one SAC
+                               update per step, MEDAL's sizes: batch 256, 2 x 256 heads) of oracle_sac on
+                               every task and r3l on point_umaze and tabletop; 1,000-step chunks, median of
+                               3 after the compile, with the compile time in the note.
+  sac_update_ms                one SAC update alone (point_umaze shapes: input 12, action 2), 200 updates in
+                               one scan, with its FLOP/s (XLA cost analysis) against a 2048^3 matmul peak
+                               measured in the same run.
+  torch_sac_update_ms          the same update in PyTorch (experiments/torch_sac_reference.py), run by the
+                               Python in $TORCH_PYTHON (a throwaway venv with torch; not a dependency).
+  fused_step_vs_torch_update   PyTorch's update time over the fused chunk's time per env step on
+                               point_umaze (oracle_sac). Bar: >= 3.
+quick=True: tabletop oracle_sac with 100-step chunks and the update row, no PyTorch.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+import envs_mjx
+from experiments.bench_core import matmul_peak
+from morefree_jax.baselines import sac
+from morefree_jax.config_run import resolve_config
+from morefree_jax.programs import jit_run_fns
+from morefree_jax.run_fns import make_run_fns
+
+SECTION = "model_free"
+BAR_VS_TORCH = 3.0
+R3L_TASKS = ("point_umaze", "tabletop")
+
+
+def _row(name, value, unit, note=""):
+    return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
+
+
+def chunk_rate(task: str, agent: str, chunk: int, reps: int = 3) -> tuple[float, float]:
+    """(env steps/s of the fused chunk, compile + first call seconds)."""
+    config = resolve_config([f"env={task}", f"agent={agent}", "prefill=300", f"baseline.chunk_len={chunk}",
+                             "baseline.replay_capacity=100000"], envs_mjx.ALL_ENVS)
+    fns = jit_run_fns(make_run_fns(config, envs_mjx.make(task)))
+    state = jax.block_until_ready(fns.prefill(fns.init(jax.random.PRNGKey(0))))
+    start = time.perf_counter()
+    state, _ = jax.block_until_ready(fns.collect(state))
+    compile_s = time.perf_counter() - start
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        state, _ = jax.block_until_ready(fns.collect(state))
+        times.append(time.perf_counter() - start)
+    return chunk / sorted(times)[len(times) // 2], compile_s
+
+
+def update_rows(obs_size: int = 12, action_size: int = 2, updates: int = 200) -> tuple[list[dict], float]:
+    """The SAC update alone in JAX (rows, ms per update)."""
+    config = sac.SACConfig()
+    keys = jax.random.split(jax.random.PRNGKey(0), 6)
+    batch = sac.SACBatch(jax.random.normal(keys[0], (256, obs_size)),
+                         jax.random.uniform(keys[1], (256, action_size), minval=-1, maxval=1),
+                         jax.random.uniform(keys[2], (256,)), jax.random.normal(keys[3], (256, obs_size)),
+                         jnp.ones(256))
+    state = sac.init(config, obs_size, action_size, keys[4])
+
+    def many(state, key):
+        step = lambda s, k: (sac.update(config, s, batch, k)[0], None)  # noqa: E731
+        return jax.lax.scan(step, state, jax.random.split(key, updates))[0]
+
+    compiled = jax.jit(many).lower(state, keys[5]).compile()
+    flops = (compiled.cost_analysis() or {}).get("flops", float("nan")) / updates
+    jax.block_until_ready(compiled(state, keys[5]))
+    start = time.perf_counter()
+    jax.block_until_ready(compiled(state, keys[5]))
+    seconds = (time.perf_counter() - start) / updates
+    peak = matmul_peak()
+    note = (f"{flops / 1e6:.0f} MFLOP per update, {flops / seconds / 1e9:.0f} GFLOP/s = "
+            f"{flops / seconds / peak:.0%} of the matmul peak ({peak / 1e9:.0f} GFLOP/s, same run)")
+    return [_row("sac_update_ms", 1e3 * seconds, "ms", note)], 1e3 * seconds
+
+
+def torch_update_ms(obs_size: int = 12, action_size: int = 2) -> dict | None:
+    """The PyTorch reference's JSON, or None without $TORCH_PYTHON."""
+    python = os.environ.get("TORCH_PYTHON")
+    if not python:
+        return None
+    script = Path(__file__).with_name("torch_sac_reference.py")
+    out = subprocess.run([python, str(script), "--obs", str(obs_size), "--action", str(action_size)],
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def run(quick: bool = False) -> list[dict]:
+    if quick:
+        rate, compile_s = chunk_rate("tabletop", "oracle_sac", 100, reps=1)
+        return [_row("tabletop_oracle_sac_steps_per_s", rate, "steps/s", f"compile {compile_s:.0f} s"),
+                *update_rows(updates=20)[0]]
+    rows, rates = [], {}
+    runs = [(task, "oracle_sac") for task in envs_mjx.ALL_ENVS] + [(task, "r3l") for task in R3L_TASKS]
+    for task, agent in runs:
+        rates[task, agent], compile_s = chunk_rate(task, agent, 1000)
+        rows.append(_row(f"{task}_{agent}_steps_per_s", rates[task, agent], "steps/s",
+                         f"UTD 1, batch 256; compile + first chunk {compile_s:.0f} s"))
+        print(rows[-1], file=sys.stderr, flush=True)
+    update, _ = update_rows()
+    rows += update
+    reference = torch_update_ms()
+    if reference is not None:
+        rows.append(_row("torch_sac_update_ms", reference["update_ms"], "ms",
+                         f"torch {reference['torch']}, {reference['threads']} threads, same shapes"))
+        per_step_ms = 1e3 / rates["point_umaze", "oracle_sac"]
+        ratio = reference["update_ms"] / per_step_ms
+        verdict = "meets" if ratio >= BAR_VS_TORCH else "misses"
+        rows.append(_row("fused_step_vs_torch_update", ratio, "x",
+                         f"{verdict} the bar >= {BAR_VS_TORCH:g}: PyTorch update "
+                         f"{reference['update_ms']:.2f} ms vs fused env step {per_step_ms:.2f} ms "
+                         "(point_umaze oracle_sac)"))
+    return rows
