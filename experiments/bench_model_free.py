@@ -77,7 +77,9 @@ def update_rows(obs_size: int = 12, action_size: int = 2, updates: int = 200) ->
         return jax.lax.scan(step, state, jax.random.split(key, updates))[0]
 
     compiled = jax.jit(many).lower(state, keys[5]).compile()
-    flops = (compiled.cost_analysis() or {}).get("flops", float("nan")) / updates
+    # XLA's cost analysis counts a loop body once: take the FLOPs of one update compiled on its own
+    single = jax.jit(lambda s, k: sac.update(config, s, batch, k)).lower(state, keys[5]).compile()
+    flops = (single.cost_analysis() or {}).get("flops", float("nan"))
     jax.block_until_ready(compiled(state, keys[5]))
     start = time.perf_counter()
     jax.block_until_ready(compiled(state, keys[5]))
