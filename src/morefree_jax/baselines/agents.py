@@ -54,10 +54,6 @@ def _batch(stored, reward) -> sac.SACBatch:
                         not_done=stored.not_done)
 
 
-def _prefixed(prefix: str, metrics: dict) -> dict:
-    return {f"{prefix}/{name.split('/')[-1]}": value for name, value in metrics.items()}
-
-
 @dataclasses.dataclass(frozen=True)
 class OracleSAC:
     """Episodic SAC on the sparse task reward (module docstring)."""
@@ -82,8 +78,7 @@ class OracleSAC:
     def update(self, state, buffers: tuple[TransitionBuffer, ...], direction, step, key):
         key_sample, key_update = jax.random.split(key)
         stored = sample(buffers[0], key_sample, self.config.sac.batch_size)
-        state, metrics = sac.update(self.config.sac, state, _batch(stored, stored.reward), key_update)
-        return state, metrics
+        return sac.update(self.config.sac, state, _batch(stored, stored.reward), key_update)
 
 
 @dataclasses.dataclass(frozen=True)
