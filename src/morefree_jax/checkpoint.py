@@ -80,10 +80,10 @@ def _as_json(tree: dict) -> dict:
     return json.loads(json.dumps(tree))
 
 
-# Config sections added after run dirs existed. A stored config without one of them was written by a run of
-# an agent that does not read it (the `baseline` keys belong to the model-free agents, which always wrote
-# them), so such a run dir resumes.
-LATER_SECTIONS = ("baseline",)
+# Config sections (dotted) added after run dirs existed. A stored config without one of them was written by
+# a run of an agent that does not read it (the `baseline` keys belong to the model-free agents, which always
+# wrote them; `baseline.discriminator` to medal, added after oracle_sac and r3l), so such a run dir resumes.
+LATER_SECTIONS = ("baseline", "baseline.discriminator")
 
 
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
@@ -91,7 +91,8 @@ def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()
     a LATER_SECTIONS section the stored config lacks). Both are compared in their JSON form (tuples and
     lists are equal)."""
     stored_flat, current_flat = _flatten_dict(_as_json(stored)), _flatten_dict(_as_json(current))
-    later = tuple(f"{section}." for section in LATER_SECTIONS if section not in stored)
+    later = tuple(f"{section}." for section in LATER_SECTIONS
+                  if not any(key.startswith(f"{section}.") for key in stored_flat))
     current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}
     keys = sorted(set(stored_flat) | set(current_flat))
     absent = "<absent>"

@@ -1,4 +1,4 @@
-"""The model-free agents' learners and how each one's stream is steered: Oracle SAC and R3L.
+"""The model-free agents' learners and how each one's stream is steered: Oracle SAC and R3L (MEDAL: medal.py).
 
     agent = make_model_free_agent("r3l", config.baseline, env)
     state = agent.init(key)                                     # learner state (SAC nets, rewards)
@@ -48,10 +48,19 @@ class R3LState:
     rnd: rewards.RNDState
 
 
-def _batch(stored, reward) -> sac.SACBatch:
+def sac_batch(stored, reward) -> sac.SACBatch:
+    """A SAC batch of stored transitions: the inputs are observation ++ goal."""
     return sac.SACBatch(obs=jnp.concatenate([stored.obs, stored.goal], -1), action=stored.action,
                         reward=reward, next_obs=jnp.concatenate([stored.next_obs, stored.goal], -1),
                         not_done=stored.not_done)
+
+
+def act_by_direction(config, forward: sac.SACState, backward: sac.SACState, direction, obs_goal, key):
+    """The acting agent's sampled action (both actors' parameters selected by `direction`, one forward
+    pass)."""
+    params = jax.tree.map(lambda f, b: jnp.where(direction == FORWARD, f, b),
+                          forward.actor.params, backward.actor.params)
+    return sac.act(config, params, obs_goal, key)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +71,15 @@ class OracleSAC:
     env: Any
     episodic = True
     num_buffers = 1
+    keeps_task_goal = False  # every episode draws its goal
+    acts_in_seed_phase = False  # MEDAL's oracle.py: uniform random actions
+    periodic_metrics = {}  # metrics logged every n steps: none
+
+    def fill_buffers(self, buffers, key):
+        return buffers
+
+    def backward_goal(self, key):  # never acts backward (episodic); the stream asks for one regardless
+        return self.env.initial_states(key)
 
     def init(self, key):
         return sac.init(self.config.sac, 2 * self.env.observation_size, self.env.action_size, key)
@@ -78,7 +96,7 @@ class OracleSAC:
     def update(self, state, buffers: tuple[TransitionBuffer, ...], direction, step, key):
         key_sample, key_update = jax.random.split(key)
         stored = sample(buffers[0], key_sample, self.config.sac.batch_size)
-        return sac.update(self.config.sac, state, _batch(stored, stored.reward), key_update)
+        return sac.update(self.config.sac, state, sac_batch(stored, stored.reward), key_update)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +107,15 @@ class R3L:
     env: Any
     episodic = False
     num_buffers = 2
+    keeps_task_goal = False  # FBRL: a fresh goal each forward segment
+    acts_in_seed_phase = False
+
+    @property
+    def periodic_metrics(self) -> dict[str, int]:
+        return {"r3l/classifier_loss": self.config.classifier.train_every}
+
+    def fill_buffers(self, buffers, key):
+        return buffers
 
     def init(self, key):
         keys = jax.random.split(key, 4)
@@ -102,9 +129,10 @@ class R3L:
         return state.forward
 
     def act(self, state: R3LState, direction, obs_goal, key):
-        params = jax.tree.map(lambda f, b: jnp.where(direction == FORWARD, f, b),
-                              state.forward.actor.params, state.backward.actor.params)
-        return sac.act(self.config.sac, params, obs_goal, key)
+        return act_by_direction(self.config.sac, state.forward, state.backward, direction, obs_goal, key)
+
+    def backward_goal(self, key):
+        return self.env.initial_states(key)
 
     def observe(self, state: R3LState, obs):
         return state.replace(rnd=rewards.observe(state.rnd, obs))
@@ -118,12 +146,12 @@ class R3L:
 
         def forward_step():
             reward = rewards.classifier_reward(cfg.classifier, state.classifier, forward_stored.next_obs)
-            agent, metrics = sac.update(cfg.sac, state.forward, _batch(forward_stored, reward), keys[2])
+            agent, metrics = sac.update(cfg.sac, state.forward, sac_batch(forward_stored, reward), keys[2])
             return state.replace(forward=agent), metrics, jnp.zeros(())
 
         def backward_step():
             reward = rewards.rnd_reward(cfg.rnd, state.rnd, backward_stored.next_obs)
-            agent, metrics = sac.update(cfg.sac, state.backward, _batch(backward_stored, reward), keys[3])
+            agent, metrics = sac.update(cfg.sac, state.backward, sac_batch(backward_stored, reward), keys[3])
             rnd, rnd_loss = rewards.update_rnd(cfg.rnd, state.rnd, backward_stored.next_obs[:cfg.rnd.batch])
             return state.replace(backward=agent, rnd=rnd), metrics, rnd_loss
 
@@ -144,7 +172,11 @@ class R3L:
 
 
 def make_model_free_agent(name: str, config: ModelFreeConfig, env):
+    from morefree_jax.baselines import demos, medal  # here: medal builds on this module
+
     agents = {"oracle_sac": OracleSAC, "r3l": R3L}
+    if name == "medal":
+        return medal.MEDAL(config, env, demos.load_demos(env.name, env))
     if name not in agents:
-        raise ValueError(f"unknown model-free agent {name!r}; valid: {', '.join(agents)}")
+        raise ValueError(f"unknown model-free agent {name!r}; valid: {', '.join([*agents, 'medal'])}")
     return agents[name](config, env)

@@ -71,6 +71,24 @@ def sample(buffer: TransitionBuffer, key: jax.Array, batch: int) -> Stored:
     return Stored(*(getattr(buffer, name)[index] for name in Stored._fields))
 
 
+def sample_from(buffer: TransitionBuffer, key: jax.Array, batch: int, start: int) -> Stored:
+    """Like sample(), from the slots written after the first `start` rows (e.g. past demonstrations
+    written first); once the ring has wrapped, every slot is past them."""
+    low = jnp.where(buffer.count > buffer.capacity, 0, jnp.clip(buffer.size - 1, 0, start))
+    index = low + jax.random.randint(key, (batch,), 0, jnp.maximum(buffer.size - low, 1))
+    return Stored(*(getattr(buffer, name)[index] for name in Stored._fields))
+
+
+def write_rows(buffer: TransitionBuffer, rows: Stored) -> TransitionBuffer:
+    """An empty buffer with `rows` (a leading batch axis) in its first slots, e.g. demonstrations."""
+    count = rows.action.shape[0]
+    if count > buffer.capacity:
+        raise ValueError(f"{count} rows do not fit a buffer of capacity {buffer.capacity}")
+    fields = {name: getattr(buffer, name).at[:count].set(jnp.asarray(value, jnp.float32))
+              for name, value in rows._asdict().items()}
+    return buffer.replace(count=jnp.asarray(count, jnp.int32), **fields)
+
+
 def insert_where(buffer: TransitionBuffer, transition: Stored, flag: jax.Array) -> TransitionBuffer:
     """insert() when `flag`, else the buffer unchanged; written in place (the slot's old row is written
     back) so that a scan can feed one of several buffers per step without copying any of them."""

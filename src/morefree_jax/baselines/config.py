@@ -39,6 +39,7 @@ class SACConfig:
 MODEL_FREE_AGENTS = {
     "oracle_sac": "Oracle: episodic SAC on the evaluation task, sparse reward (the only agent with resets)",
     "r3l": "R3L: forward SAC on a learned goal classifier, backward RND exploration (no env reward)",
+    "medal": "MEDAL: forward SAC on the sparse reward, backward SAC back to demonstration states (demos)",
 }
 
 
@@ -90,7 +91,10 @@ class RNDConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ModelFreeConfig:
-    """chunk_len: env steps per compiled call (each step acts, steps the env, stores and updates once).
+    """classifier: R3L's goal classifier. discriminator: MEDAL's backward reward, a classifier of
+    demonstration states against backward states; its defaults are MEDAL's (medal.yaml, baselines.md
+    section 3), the same values R3L's classifier takes as its template.
+    chunk_len: env steps per compiled call (each step acts, steps the env, stores and updates once).
     replay_capacity: transitions kept per buffer (MEDAL keeps 5e6; our runs are shorter, and 1e6 of
     PointUMaze transitions is ~110 MB per buffer). switch_every: R3L's forward/backward segment length
     (FBRL's policy_switch_frequency). The seed phase (uniform random actions, no updates) is run.prefill,
@@ -98,6 +102,7 @@ class ModelFreeConfig:
 
     sac: SACConfig = dataclasses.field(default_factory=SACConfig)
     classifier: ClassifierConfig = dataclasses.field(default_factory=ClassifierConfig)
+    discriminator: ClassifierConfig = dataclasses.field(default_factory=ClassifierConfig)
     rnd: RNDConfig = dataclasses.field(default_factory=RNDConfig)
     chunk_len: int = 1000
     replay_capacity: int = 1_000_000

@@ -2,7 +2,7 @@
 (morefree_jax.run_fns), so loop.train, the programs over seeds, checkpoints, evaluation, logs and plots
 serve both.
 
-    fns = make_model_free_fns(config, env)       # config.run.agent in ("oracle_sac", "r3l")
+    fns = make_model_free_fns(config, env)       # config.run.agent: oracle_sac, r3l or medal
     state = fns.prefill(fns.init(key))           # the seed phase: uniform random actions, no updates
     state, metrics = fns.collect(state)          # one fused chunk: act, env step, store, one SAC update
 
@@ -10,7 +10,7 @@ serve both.
 `lax.scan`, picks the action, steps the env, writes the transition into the device replay and runs the
 acting agent's SAC update (UTD 1), with no host round trip. There is no separate train call
 (`train_updates` is None). The stream is episodic for oracle_sac and reset-free (hard resets only) for
-r3l (baselines/agents.py).
+r3l and medal (baselines/agents.py, baselines/medal.py).
 """
 
 from __future__ import annotations
@@ -32,11 +32,13 @@ from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitatio
 
 @struct.dataclass
 class ModelFreeStream:
-    """The env stream: the current goal, who acts (FORWARD / BACKWARD), steps into the episode or
-    segment, and the stream position (drives r3l's hard resets)."""
+    """The env stream: the current goal, the task goal (the forward goal; MEDAL keeps it across backward
+    segments), who acts (FORWARD / BACKWARD), steps into the episode or segment, and the stream position
+    (drives the hard resets)."""
 
     env_state: Any
     goal: jax.Array
+    task_goal: jax.Array
     direction: jax.Array
     segment_step: jax.Array
     steps: jax.Array
@@ -95,11 +97,13 @@ class _Parts:
     def init(self, key) -> ModelFreeRunState:
         key_agent, key_reset, key_goal, key_run = jax.random.split(key, 4)
         size, capacity = self.env.observation_size, self.config.baseline.replay_capacity
-        stream = ModelFreeStream(env_state=self.env.reset(key_reset), goal=self.env.eval_goals(key_goal),
+        goal = self.env.eval_goals(key_goal)
+        stream = ModelFreeStream(env_state=self.env.reset(key_reset), goal=goal, task_goal=goal,
                                  direction=jnp.asarray(FORWARD, jnp.int32),
                                  segment_step=jnp.zeros((), jnp.int32), steps=jnp.zeros((), jnp.int32))
         buffers = tuple(init_buffer(capacity, size, self.env.action_size)
                         for _ in range(self.learner.num_buffers))
+        buffers = self.learner.fill_buffers(buffers, jax.random.fold_in(key, 1))  # MEDAL: demonstrations
         return ModelFreeRunState(agent=self.learner.init(key_agent), replay=buffers, stream=stream,
                                  key=key_run, back_starts=init_back_starts())
 
@@ -122,7 +126,7 @@ class _Parts:
         agent, buffers, stream = carry
         key_act, key_update, key_next = jax.random.split(key, 3)
         obs, goal = stream.env_state.obs, stream.goal
-        if learn:
+        if learn or self.learner.acts_in_seed_phase:
             action = self.learner.act(agent, stream.direction, jnp.concatenate([obs, goal]), key_act)
         else:
             action = jax.random.uniform(key_act, (self.env.action_size,), minval=-1.0, maxval=1.0)
@@ -150,14 +154,16 @@ class _Parts:
 
     def next_segment(self, stream: ModelFreeStream, env_state, end, reset, key) -> ModelFreeStream:
         """After an end: the other direction (forward after a reset), with a fresh goal of its kind."""
-        key_reset, key_eval, key_initial = jax.random.split(key, 3)
+        key_reset, key_eval, key_backward = jax.random.split(key, 3)
         env_state = lazy_cond(reset, lambda: self.env.reset(key_reset), lambda: env_state)
         flipped = jnp.where(reset | self.learner.episodic, FORWARD, 1 - stream.direction)
         direction = jnp.where(end, flipped, stream.direction).astype(jnp.int32)
-        fresh_goal = jnp.where(direction == FORWARD, self.env.eval_goals(key_eval),
-                               self.env.initial_states(key_initial))
+        redraw = (reset | end) if not self.learner.keeps_task_goal else reset
+        task_goal = jnp.where(redraw, self.env.eval_goals(key_eval), stream.task_goal)
+        fresh_goal = jnp.where(direction == FORWARD, task_goal, self.learner.backward_goal(key_backward))
         return ModelFreeStream(env_state=env_state, goal=jnp.where(end, fresh_goal, stream.goal),
-                               direction=direction, segment_step=jnp.where(end, 0, stream.segment_step + 1),
+                               task_goal=task_goal, direction=direction,
+                               segment_step=jnp.where(end, 0, stream.segment_step + 1),
                                steps=stream.steps + 1)
 
     def chunk_metrics(self, state: ModelFreeRunState, records: dict) -> dict:
@@ -174,8 +180,8 @@ class _Parts:
                     metrics[f"{direction}/{name[4:]}"] = jnp.sum(values * mask) / jnp.maximum(mask.sum(), 1)
             elif name == "r3l/rnd_loss":
                 metrics[name] = jnp.sum(values) / jnp.maximum(masks["backward"].sum(), 1)
-            else:  # the classifier: updated every train_every steps
-                every = self.config.baseline.classifier.train_every
+            else:  # a classifier's loss: updated every n steps, zeros between
+                every = self.learner.periodic_metrics[name]
                 metrics[name] = jnp.sum(values) / jnp.maximum(jnp.ceil(len(values) / every), 1)
         updates = [getattr(state.agent, part).updates for part in ("forward", "backward")
                    if hasattr(state.agent, part)] or [state.agent.updates]

@@ -1,0 +1,156 @@
+"""MEDAL: its demonstrations in the buffers, the discriminator's reward, the stream it steers (the task goal
+kept across backward segments, goal-distribution backward goals, the policy acting in the seed phase), a
+whole 2-chunk run and exact resume. The shared model-free machinery is tested in test_model_free.py."""
+
+from __future__ import annotations
+
+import functools
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import envs_mjx
+from morefree_jax import loop
+from morefree_jax.baselines import demos as demo_files
+from morefree_jax.baselines import rewards
+from morefree_jax.baselines.agents import BACKWARD
+from morefree_jax.baselines.buffer import init_buffer, sample_from
+from morefree_jax.baselines.config import ModelFreeConfig
+from morefree_jax.baselines.medal import MEDAL
+from morefree_jax.checkpoint import latest_valid
+from morefree_jax.logger import read_metrics
+from morefree_jax.programs import seed_slice
+from tests.test_model_free import CHUNK, PREFILL, SWITCH, mf_config
+
+ENV = "tabletop"  # loop_helpers.RUN_ENV: the fast-compiling kinematic step
+
+
+@functools.cache
+def env():
+    return envs_mjx.make(ENV)
+
+
+def synthetic_demos(count: int = 20):
+    """Forward and reverse DemoSets whose rows are recognisable: observation column 0 holds 100 + row
+    (forward) or 200 + row (reverse)."""
+    size, actions = env().observation_size, env().action_size
+
+    def demo(offset):
+        obs = np.zeros((count, size), np.float32)
+        obs[:, 0] = offset + np.arange(count)
+        terminals = np.zeros(count, np.float32)
+        terminals[-1] = 1.0
+        return demo_files.DemoSet(observations=obs, goals=obs + 1.0, actions=np.zeros((count, actions),
+                                  np.float32), rewards=terminals.copy(), terminals=terminals,
+                                  next_observations=obs + 0.5)
+
+    return {"forward": demo(100), "reverse": demo(200)}
+
+
+def test_buffers_start_with_the_demonstrations():
+    medal = MEDAL(ModelFreeConfig(), env(), synthetic_demos())
+    empty = tuple(init_buffer(100, env().observation_size, env().action_size) for _ in range(2))
+    forward, backward = medal.fill_buffers(empty, jax.random.PRNGKey(0))
+    assert int(forward.count) == 20 and int(backward.count) == 40 == medal.backward_demo_count
+    assert np.array_equal(forward.obs[:20, 0], 100 + np.arange(20))
+    assert np.array_equal(forward.goal[:20, 0], 101 + np.arange(20))  # forward demos keep their goal
+    assert forward.reward[19] == 1.0 and forward.not_done[19] == 0.0 and forward.not_done[0] == 1.0
+    assert np.array_equal(backward.obs[:40, 0], np.concatenate([100 + np.arange(20), 200 + np.arange(20)]))
+    goals = np.asarray(backward.goal[:40])  # relabelled: draws of the goal distribution, not the demos'
+    assert not np.any(np.isin(goals[:, 0], forward.goal[:20, 0]))
+    draws = np.asarray(jax.vmap(env().eval_goals)(jax.random.split(jax.random.PRNGKey(1), 200)))
+    low, high = draws.min(0) - 1e-6, draws.max(0) + 1e-6
+    assert np.all((goals >= low) & (goals <= high))
+
+
+def test_negatives_come_from_past_the_demonstrations():
+    medal = MEDAL(ModelFreeConfig(), env(), synthetic_demos())
+    empty = tuple(init_buffer(60, env().observation_size, env().action_size) for _ in range(2))
+    backward = medal.fill_buffers(empty, jax.random.PRNGKey(0))[BACKWARD]
+    visited = backward.replace(obs=backward.obs.at[40:50, 0].set(-7.0), count=jnp.asarray(50))
+    drawn = sample_from(visited, jax.random.PRNGKey(2), 300, start=medal.backward_demo_count)
+    assert set(np.asarray(drawn.obs[:, 0]).tolist()) == {-7.0}
+    wrapped = visited.replace(count=jnp.asarray(61))  # the ring overwrote demonstrations: all slots count
+    assert len(set(np.asarray(sample_from(wrapped, jax.random.PRNGKey(2), 300, start=40).obs[:, 0]))) > 1
+
+
+def test_discriminator_reward_rises_on_demonstration_states():
+    config = ModelFreeConfig()
+    medal = MEDAL(config, env(), synthetic_demos())
+    empty = tuple(init_buffer(100, env().observation_size, env().action_size) for _ in range(2))
+    forward, backward = medal.fill_buffers(empty, jax.random.PRNGKey(0))
+    backward = backward.replace(obs=backward.obs.at[40:100, 0].set(-50.0), count=jnp.asarray(100))
+    state = medal.init(jax.random.PRNGKey(3))
+    update = jax.jit(medal.update_discriminator)
+    for step in range(200):
+        state, loss = update(state, backward, jax.random.PRNGKey(step))
+    demo = synthetic_demos()["forward"]
+    demo_input = jnp.concatenate([demo.observations, demo.goals], -1)
+    visited = jnp.concatenate([backward.obs[40:60], backward.goal[40:60]], -1)
+    reward = lambda x: rewards.classifier_reward(config.discriminator, state.discriminator, x)  # noqa: E731
+    assert float(reward(demo_input).mean()) > 2.0 > 0.1 > float(reward(visited).mean())
+    assert float(loss) < 0.6  # mixup keeps BCE above 0 even when separable
+
+
+# ---- the stream, through the compiled run functions (one compiled group) ----------------------------
+
+@functools.lru_cache(maxsize=1)
+def medal_programs():
+    return loop.build_programs(mf_config("medal", "steps=200"), 1)
+
+
+def prefilled():
+    programs = medal_programs()
+    return programs, programs.prefill(programs.init(jax.random.PRNGKey(0)[None]))
+
+
+def test_seed_phase_acts_with_the_policy_and_steers_medal_goals():
+    programs, state = prefilled()
+    forward, backward = seed_slice(state.replay, 0)
+    loaded = demo_files.load_demos(ENV, env())
+    forward_demos = len(loaded["forward"].actions)
+    backward_demos = sum(len(demo.actions) for demo in loaded.values())
+    seen_forward, seen_backward = int(forward.count) - forward_demos, int(backward.count) - backward_demos
+    assert seen_forward + seen_backward == PREFILL and seen_backward > 0
+    actions = np.asarray(forward.action[forward_demos:forward_demos + seen_forward])
+    # The untrained tanh-Gaussian policy (log-std ~0) rarely saturates; uniform actions would fill [-1, 1].
+    assert np.mean(np.abs(actions) > 0.9) < 0.25
+    forward_goals = np.asarray(forward.goal[forward_demos:forward_demos + seen_forward])
+    assert np.all(forward_goals == forward_goals[0])  # the task goal, kept across the backward segment
+    stored = np.asarray(backward.not_done[backward_demos:int(backward.count)])
+    ends = np.flatnonzero(stored == 0)
+    assert np.all(np.diff(np.concatenate([[-1], ends])) <= SWITCH)
+    initial = np.asarray(env().initial_states(jax.random.PRNGKey(0)))
+    backward_goals = np.asarray(backward.goal[backward_demos:int(backward.count)])
+    assert not np.allclose(backward_goals[0], initial)  # a goal-distribution draw, unlike r3l's
+
+
+def test_two_chunk_medal_run_writes_every_file_and_resumes_exactly(tmp_path):
+    steps = PREFILL + 2 * CHUNK
+    config = lambda d, n: mf_config("medal", f"run_dir={d}", f"steps={n}")  # noqa: E731
+    loop.train(config(tmp_path / "full", steps), programs=medal_programs(), progress="off")
+    run_dir = tmp_path / "full"
+    records = read_metrics(run_dir / "metrics.jsonl")
+    last = [r for r in records if "train/updates" in r][-1]
+    assert last["train/updates"] == 2 * CHUNK
+    assert "medal/discriminator_loss" in last and last["medal/discriminator_loss"] > 0
+    assert any("eval/success" in r for r in records) and list((run_dir / "tb").iterdir())
+    assert str(steps) in {p.name for p in (run_dir / "checkpoints").iterdir()}
+    # Stopped after one chunk, then continued to two: the same state, bit for bit.
+    loop.train(config(tmp_path / "split", PREFILL + CHUNK), programs=medal_programs(), progress="off")
+    loop.train(config(tmp_path / "split", steps), programs=medal_programs(), progress="off")
+    template = seed_slice(medal_programs().init(jax.random.PRNGKey(0)[None]), 0)
+    states = [latest_valid(d, template, json.loads((d / "config.json").read_text())).state
+              for d in (tmp_path / "full", tmp_path / "split")]
+    pairs = zip(*(jax.tree.leaves(s) for s in states), strict=True)
+    assert all(np.asarray(a).tobytes() == np.asarray(b).tobytes() for a, b in pairs)
+
+
+def test_medal_without_demonstrations_is_one_line(capsys):
+    from experiments import train as train_cli
+
+    assert train_cli.main(["env=ant", "agent=medal", "preset=debug"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "ant" in err and len(err.splitlines()) == 1
