@@ -20,6 +20,7 @@ import hashlib
 import importlib.util
 import json
 import pathlib
+import zipfile
 from typing import NamedTuple
 
 import numpy as np
@@ -103,6 +104,17 @@ def from_arrays(direction: str, arrays: dict[str, np.ndarray]) -> DemoSet:
     )
 
 
+def write_npz(path: pathlib.Path, arrays: dict[str, np.ndarray]) -> None:
+    """A compressed .npz that np.load reads, byte-identical for identical arrays: np.savez stamps each
+    member with the current time, so regenerated files would differ in git without any change."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for key in sorted(arrays):
+            member = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            member.compress_type = zipfile.ZIP_DEFLATED
+            with archive.open(member, "w") as stream:
+                np.lib.format.write_array(stream, np.ascontiguousarray(arrays[key]), allow_pickle=False)
+
+
 def write_demos(task: str, demos: dict[str, DemoSet], directory: pathlib.Path | None = None) -> pathlib.Path:
     """Writes <directory>/<task>.npz (float32) and records its checksum in <directory>/checksums.json."""
     directory = pathlib.Path(directory or default_directory())
@@ -112,7 +124,7 @@ def write_demos(task: str, demos: dict[str, DemoSet], directory: pathlib.Path | 
         arrays.update(to_arrays(direction, demo))
     arrays = {key: np.asarray(value, np.float32) for key, value in arrays.items()}
     path = directory / f"{task}.npz"
-    np.savez_compressed(path, **arrays)
+    write_npz(path, arrays)
     checksums = read_checksums(directory)
     checksums[path.name] = array_checksum(arrays)
     (directory / CHECKSUMS).write_text(json.dumps(dict(sorted(checksums.items())), indent=2) + "\n")
@@ -138,7 +150,7 @@ def demo_path(task: str, directory: pathlib.Path | None = None) -> pathlib.Path:
 
 
 def expected_shapes(task: str, observation_size: int, action_size: int) -> dict[str, tuple[int | None, ...]]:
-    """{key: shape} with None for the number of transitions; the text of a column mismatch names the rule."""
+    """{key: shape} of a task's arrays, None standing for the number of transitions."""
     shapes = {}
     for direction in DEMO_COUNTS[task]:
         both = 2 * observation_size
