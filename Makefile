@@ -22,7 +22,7 @@ DEFAULT_SEEDS := 0,1,2
 RUNS ?= runs
 OUT ?= results
 
-.PHONY: install test test-slow lint bench clean train evaluate experiment plots
+.PHONY: install test test-slow lint bench clean train evaluate experiment plots demos
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
 CUDA ?=
@@ -62,6 +62,12 @@ plots:
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)
+
+# MEDAL's scripted demonstrations -> envs_mjx/demos/<task>.npz and checksums.json. Without ENV (not the
+# point_umaze default of the other targets) every task with demonstrations; ENV=push: one task.
+DEMOS_ENV = $(if $(filter command line environment,$(origin ENV)),$(ENV),all)
+demos:
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.demos env=$(DEMOS_ENV)
 
 clean:
 	rm -rf bench/ .pytest_cache build *.egg-info src/*.egg-info

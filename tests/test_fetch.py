@@ -1,7 +1,7 @@
 """Physics and task checks of the four Fetch tasks (push, pick_place, push_hard, pick_place_hard).
 
 Every check of a task reads one compiled, vmapped rollout of SCENARIOS scripted scenarios (500 steps each,
-controller written in jnp inside the scan), so each task compiles once:
+controllers from envs_mjx.scripted, in jnp inside the scan), so each task compiles once:
   0-3   a sampled evaluation goal, pushed (push tasks) or picked and carried (pick-and-place tasks)
   4-7   pushing the block towards a point 0.6 m beyond each wall / confinement side (+x, -x, +y, -y)
   8     zero action (the block must rest)
@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 import envs_mjx
 from envs_mjx import fetch
+from envs_mjx.scripted import pick_action, push_action
 
 FETCH_TASKS = ("push", "pick_place", "push_hard", "pick_place_hard")
 NUM_STEPS = 500
@@ -32,48 +33,6 @@ REST_SCENARIO = 8
 CORNER_ACTIONS = np.array([[1, 1, 1, 0], [-1, -1, -1, 0], [1, -1, 1, 0], [-1, 1, -1, 0]], np.float32)
 CORNER_SCENARIOS = range(9, 13)
 WALL_DIRECTIONS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], np.float32)
-HOVER_Z = 0.48  # finger bottoms 1.5 cm above the block top
-PUSH_Z = 0.43
-
-
-def push_action(obs: jax.Array, goal: jax.Array) -> jax.Array:
-    """Fingers closed: go up, come down behind the block, push it along the line to the goal."""
-    grip, block = obs[0:3], obs[3:6]
-    to_goal = goal[:2] - block[:2]
-    distance = jnp.linalg.norm(to_goal)
-    along_dir = to_goal / jnp.maximum(distance, 1e-6)
-    side_dir = jnp.array([-along_dir[1], along_dir[0]])
-    offset = grip[:2] - block[:2]
-    along, side = offset @ along_dir, offset @ side_dir
-    behind = block[:2] - 0.065 * along_dir
-    at_behind = jnp.linalg.norm(grip[:2] - behind) < 0.012
-    pushing = (jnp.abs(side) < 0.012) & (along < -0.02) & (grip[2] < PUSH_Z + 0.015)
-    # Slow down near the goal: a block pushed at full speed (1.25 m/s) slides ~8 cm on after contact.
-    push_xy = grip[:2] + jnp.minimum(0.5 * distance, 0.03) * along_dir - side * side_dir
-    high_enough = grip[2] > HOVER_Z - 0.015
-    approach_xy = jnp.where(high_enough | at_behind, behind, grip[:2])
-    approach_z = jnp.where(at_behind, PUSH_Z, HOVER_Z)
-    target = jnp.where(pushing, jnp.append(push_xy, PUSH_Z), jnp.append(approach_xy, approach_z))
-    target = jnp.where(distance < 0.01, grip, target)
-    return jnp.append(jnp.clip((target - grip) / fetch.MAX_DISPLACEMENT, -1, 1), -1.0)
-
-
-def pick_action(obs: jax.Array, goal: jax.Array, phase: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Phases: 0 open above the block and descend, 1..3 close, 4 carry the block to the goal."""
-    grip, block = obs[0:3], obs[3:6]
-    above = jnp.linalg.norm(grip[:2] - block[:2]) < 0.01
-    approach = jnp.where(above, block, jnp.append(block[:2], HOVER_Z))
-    reach_action = jnp.append(jnp.clip((approach - grip) / fetch.MAX_DISPLACEMENT, -1, 1), 1.0)
-    close_action = jnp.array([0.0, 0.0, 0.0, -1.0])
-    carry_action = jnp.append(jnp.clip((goal - block) / fetch.MAX_DISPLACEMENT, -1, 1), -1.0)
-    action = jnp.where(phase == 0, reach_action, jnp.where(phase < 4, close_action, carry_action))
-    reached = jnp.linalg.norm(grip - block) < 0.008
-    dropped = jnp.linalg.norm(grip - block) > 0.03
-    next_phase = jnp.where(phase == 0, reached.astype(jnp.int32), jnp.minimum(phase + 1, 4))
-    next_phase = jnp.where((phase == 4) & dropped, 0, next_phase)
-    return action, next_phase
-
-
 def scripted_rollout(env, state, goal, mode, fixed_action):
     """One scenario from `state`: (qpos (T, nq), qvel (T, nv), obs (T, 25)) after each of NUM_STEPS steps."""
 

@@ -14,10 +14,10 @@ import numpy as np
 from conftest import cached_env
 
 from envs_mjx import sawyer_door as door
+from envs_mjx import scripted
 
 HORIZON = 300
 CLOSE, PUSH_OPEN, CORNERS, RANDOM = range(4)
-PUSH_RADIUS, PUSH_Z = 0.30, 0.18  # push the leaf 0.30 from the hinge, above the handle (top z 0.123)
 STOPPER_TOLERANCE = 0.01  # rad: the soft joint limit may be passed by this much
 WORKSPACE_TOLERANCE = 0.015  # m: the hand lags its (clipped) mocap target by about a centimetre
 
@@ -26,55 +26,26 @@ def env() -> door.SawyerDoor:
     return cached_env("sawyer_door")
 
 
-def leaf_point(angle, radius, front, z):
-    """World point `radius` along the leaf at door angle `angle`, `front` in front of it (handle side)."""
-    cos, sin = jnp.cos(angle), jnp.sin(angle)
-    x, y = radius, -front
-    return jnp.stack([door.HINGE[0] + cos * x - sin * y, door.HINGE[1] + sin * x + cos * y, jnp.asarray(z)])
-
-
-def steer(obs, target):
-    return jnp.clip((target - obs[0:3]) / door.MOCAP_STEP, -1.0, 1.0)
-
-
 def close_controller(obs, phase, t, key):
-    """Go in front of the leaf, then push it shut along its arc; fingers closed."""
     del t, key
-    angle = door.door_angle_of_handle(obs[4:7])
-    approach = leaf_point(angle, PUSH_RADIUS, 0.045, PUSH_Z)
-    push = leaf_point(jnp.minimum(angle + 0.2, 0.0), PUSH_RADIUS, 0.025, PUSH_Z)
-    phase = jnp.maximum(phase, (jnp.linalg.norm(obs[0:3] - approach) < 0.015).astype(jnp.int32))
-    return steer(obs, jnp.where(phase > 0, push, approach)), phase
+    return scripted.close_door(obs, door.GOAL_STATE, phase)
 
 
 def push_open_controller(obs, phase, t, key):
-    """Rise, pass over the leaf, drop behind it and keep pushing it further open into the stopper."""
     del t, key
-    angle = door.door_angle_of_handle(obs[4:7])
-    behind = leaf_point(angle, PUSH_RADIUS, -0.045, PUSH_Z)
-    targets = jnp.stack(
-        [
-            obs[0:3].at[2].set(0.32),
-            behind.at[2].set(0.32),
-            behind,
-            leaf_point(angle - 0.3, PUSH_RADIUS, -0.025, PUSH_Z),
-        ]
-    )
-    reached = jnp.linalg.norm(obs[0:3] - targets[phase]) < 0.015
-    phase = jnp.minimum(phase + reached.astype(jnp.int32), 3)
-    return steer(obs, targets[phase]), phase
+    return scripted.push_door_open(obs, door.GOAL_STATE, phase)
 
 
 def corners_controller(obs, phase, t, key):
     """Full-speed pushes far outside the workspace, changing corner every 100 steps."""
     del obs, key
     corners = jnp.array([[1, -1, 1], [-1, 1, -1], [1, 1, 1]], jnp.float32)
-    return corners[(t // 100) % 3], phase
+    return scripted.with_fingers_closed(corners[(t // 100) % 3]), phase
 
 
 def random_controller(obs, phase, t, key):
     del obs, t
-    return jax.random.uniform(key, (3,), minval=-1.0, maxval=1.0), phase
+    return scripted.with_fingers_closed(jax.random.uniform(key, (3,), minval=-1.0, maxval=1.0)), phase
 
 
 @functools.cache
@@ -88,8 +59,7 @@ def compiled_rollout():
         def body(carry, inputs):
             state, phase = carry
             t, key_t = inputs
-            move, phase = jax.lax.switch(mode, controllers, state.obs, phase, t, key_t)
-            action = jnp.concatenate([move, jnp.ones(1)])  # fingers closed
+            action, phase = jax.lax.switch(mode, controllers, state.obs, phase, t, key_t)  # fingers closed
             next_state = env().step(state, action)
             data = next_state.pipeline_state
             record = (state.pipeline_state, action, next_state.obs, env().door_angle(data), data.mocap_pos[0])

@@ -10,9 +10,9 @@ import numpy as np
 from conftest import cached_env
 
 from envs_mjx import tabletop
+from envs_mjx.scripted import CLOSE, OPEN, tabletop_waypoint_action
 
 STEPS_PER_WAYPOINT = 30  # the longest leg is 5 per axis, i.e. 25 steps of 0.2
-OPEN, CLOSE = -1.0, 1.0
 MUG_START = (2.5, 0.0)
 
 
@@ -92,13 +92,9 @@ def tour_waypoints() -> np.ndarray:
 def scripted_tour():
     """Runs the tour in one scan. Returns observations (W, STEPS_PER_WAYPOINT, 6)."""
 
-    def controller(obs, waypoint):
-        move = jnp.clip((waypoint[0:2] - obs[0:2]) / tabletop.MOVE_SCALE, -1.0, 1.0)
-        return jnp.concatenate([move, waypoint[2:3]])
-
     def leg(state, waypoint):
         def body(state, _):
-            state = env().step(state, controller(state.obs, waypoint))
+            state = env().step(state, tabletop_waypoint_action(state.obs, waypoint))
             return state, state.obs
 
         return jax.lax.scan(body, state, None, length=STEPS_PER_WAYPOINT)
