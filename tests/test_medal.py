@@ -15,7 +15,7 @@ import envs_mjx
 from morefree_jax import loop
 from morefree_jax.baselines import demos as demo_files
 from morefree_jax.baselines import rewards
-from morefree_jax.baselines.agents import BACKWARD
+from morefree_jax.baselines.agents import BACKWARD, FORWARD
 from morefree_jax.baselines.buffer import init_buffer, sample_from
 from morefree_jax.baselines.config import ModelFreeConfig
 from morefree_jax.baselines.medal import MEDAL
@@ -101,30 +101,31 @@ def medal_programs():
     return loop.build_programs(mf_config("medal", "steps=200"), 1)
 
 
-def prefilled():
-    programs = medal_programs()
-    return programs, programs.prefill(programs.init(jax.random.PRNGKey(0)[None]))
-
-
 def test_seed_phase_acts_with_the_policy_and_steers_medal_goals():
-    programs, state = prefilled()
+    programs = medal_programs()
+    initial = programs.init(jax.random.PRNGKey(0)[None])
+    start = jax.tree.map(np.array, seed_slice(initial, 0))  # copies: prefill donates its input
+    state = programs.prefill(initial)
     forward, backward = seed_slice(state.replay, 0)
     loaded = demo_files.load_demos(ENV, env())
     forward_demos = len(loaded["forward"].actions)
     backward_demos = sum(len(demo.actions) for demo in loaded.values())
     seen_forward, seen_backward = int(forward.count) - forward_demos, int(backward.count) - backward_demos
     assert seen_forward + seen_backward == PREFILL and seen_backward > 0
-    actions = np.asarray(forward.action[forward_demos:forward_demos + seen_forward])
-    # The untrained tanh-Gaussian policy (log-std ~0) rarely saturates; uniform actions would fill [-1, 1].
-    assert np.mean(np.abs(actions) > 0.9) < 0.25
+    # The first seed-phase action is the untrained policy's sample under the step's key (run_fns.step).
+    key_steps = jax.random.split(start.key)[1]
+    key_act = jax.random.split(jax.random.split(key_steps, PREFILL)[0], 3)[0]
+    obs_goal = jnp.concatenate([start.stream.env_state.obs, start.stream.goal])
+    expected = programs.fns.agent.learner.act(start.agent, FORWARD, obs_goal, key_act)
+    assert np.allclose(forward.action[forward_demos], expected, atol=1e-6)
     forward_goals = np.asarray(forward.goal[forward_demos:forward_demos + seen_forward])
     assert np.all(forward_goals == forward_goals[0])  # the task goal, kept across the backward segment
     stored = np.asarray(backward.not_done[backward_demos:int(backward.count)])
     ends = np.flatnonzero(stored == 0)
     assert np.all(np.diff(np.concatenate([[-1], ends])) <= SWITCH)
-    initial = np.asarray(env().initial_states(jax.random.PRNGKey(0)))
+    initial_state = np.asarray(env().initial_states(jax.random.PRNGKey(0)))
     backward_goals = np.asarray(backward.goal[backward_demos:int(backward.count)])
-    assert not np.allclose(backward_goals[0], initial)  # a goal-distribution draw, unlike r3l's
+    assert not np.allclose(backward_goals[0], initial_state)  # a goal-distribution draw, unlike r3l's
 
 
 def test_two_chunk_medal_run_writes_every_file_and_resumes_exactly(tmp_path):
