@@ -5,8 +5,8 @@
 Rows {"section", "name", "value", "unit", "note"}:
   <task>_<agent>_steps_per_s   env steps/s of the fused chunk (policy, env step, replay insert and one SAC
                                update per step, MEDAL's sizes: batch 256, 2 x 256 heads) of oracle_sac on
-                               every task and r3l on point_umaze and tabletop; 1,000-step chunks, median of
-                               3 after the compile, with the compile time in the note.
+                               every task, r3l and medal on point_umaze and tabletop; 1,000-step chunks,
+                               median of 3 after the compile, with the compile time in the note.
   sac_update_ms                one SAC update alone (point_umaze shapes: input 12, action 2), 200 updates in
                                one scan, with its FLOP/s (XLA cost analysis) against a 2048^3 matmul peak
                                measured in the same run.
@@ -38,7 +38,7 @@ from morefree_jax.run_fns import make_run_fns
 
 SECTION = "model_free"
 BAR_VS_TORCH = 3.0
-R3L_TASKS = ("point_umaze", "tabletop")
+R3L_TASKS = MEDAL_TASKS = ("point_umaze", "tabletop")
 
 
 def _row(name, value, unit, note=""):
@@ -108,6 +108,7 @@ def run(quick: bool = False) -> list[dict]:
                 *update_rows(updates=20)[0]]
     rows, rates = [], {}
     runs = [(task, "oracle_sac") for task in envs_mjx.ALL_ENVS] + [(task, "r3l") for task in R3L_TASKS]
+    runs += [(task, "medal") for task in MEDAL_TASKS]
     for task, agent in runs:
         rates[task, agent], compile_s = chunk_rate(task, agent, 1000)
         rows.append(_row(f"{task}_{agent}_steps_per_s", rates[task, agent], "steps/s",
