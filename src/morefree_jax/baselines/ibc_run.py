@@ -63,9 +63,6 @@ def make_ibc_fns(config, env):
 
     cfg = config.baseline.ibc
     task = ibc_task(env, cfg.segment_length)
-    if cfg.pool_size < cfg.slots:
-        raise ValueError(f"baseline.ibc.pool_size ({cfg.pool_size}) must be >= baseline.ibc.slots "
-                         f"({cfg.slots})")
     learner = IBCLearner(cfg, env, task)
     parts = IBCParts(config, env, learner, Curriculum(env, task, cfg, cfg.sac.discount))
     return RunFns(parts.init, parts.prefill, parts.collect, None, parts.evaluate, parts.visitation, env,
