@@ -4,6 +4,7 @@ program), exact resume after SIGKILL, and bad input. The generalised SAC learner
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -21,7 +22,8 @@ import envs_mjx
 from experiments import train as train_cli
 from morefree_jax import loop
 from morefree_jax.baselines import curriculum as curriculum_lib
-from morefree_jax.baselines import her
+from morefree_jax.baselines import her, sac
+from morefree_jax.baselines.config import IBCConfig
 from morefree_jax.baselines.curriculum import Curriculum
 from morefree_jax.baselines.ibc import BACKWARD, FORWARD, IBCLearner
 from morefree_jax.baselines.ibc_run import IBCParts
@@ -52,6 +54,36 @@ def ibc_config(*extra: str):
 @functools.lru_cache(maxsize=1)
 def ibc_programs():
     return loop.build_programs(ibc_config("steps=200"), len(SEEDS))
+
+
+# ---- IBC's SAC variant (sac.py's options) ---------------------------------------------------------
+
+def test_ibc_sac_options_squash_log_std_and_skip_actor_and_target_on_odd_updates():
+    cfg = dataclasses.replace(IBCConfig().sac, hidden_dim=16, feature_dim=8, batch_size=4)
+    state = sac.init(cfg, 6, 2, jax.random.PRNGKey(0))
+    assert len(state.actor.params["params"]["_Head_0"]) == 4  # 3 hidden layers + the output
+    _, log_std = sac.policy(cfg, state.actor.params, 1e4 * jax.random.normal(jax.random.PRNGKey(1), (64, 6)))
+    assert float(log_std.min()) >= -10.0 and float(log_std.max()) <= 2.0
+    batch = sac.SACBatch(obs=jnp.ones((4, 6)), action=jnp.zeros((4, 2)), reward=-jnp.ones(4),
+                         next_obs=jnp.ones((4, 6)), not_done=jnp.ones(4))
+    update = jax.jit(functools.partial(sac.update, cfg))
+    first, metrics = update(state, batch, jax.random.PRNGKey(2))  # update 0: critic, actor, alpha, target
+    second, _ = update(first, batch, jax.random.PRNGKey(3))  # update 1: the critic only
+    def changed(a, b):
+        return any(bool(jnp.any(x != y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+    assert changed(state.actor.params, first.actor.params)
+    assert not changed(first.actor.params, second.actor.params)
+    assert changed(state.critic.target, first.critic.target) and not changed(first.critic.target,
+                                                                              second.critic.target)
+    assert changed(first.critic.params, second.critic.params)
+    # The plain clipped step from alpha 0.5: alpha - 1e-5 (entropy - target entropy), at most 0.5.
+    expected = min(0.5 - 1e-5 * (float(metrics["sac/entropy"]) + 2.0), 0.5)  # target entropy -|A| = -2
+    np.testing.assert_allclose(float(metrics["sac/alpha"]), expected, rtol=1e-6)
+    loss_half = sac.critic_loss(dataclasses.replace(cfg, critic_loss_weight=0.5), state.critic.params, batch,
+                                jnp.zeros(4))[0]
+    loss_full = sac.critic_loss(cfg, state.critic.params, batch, jnp.zeros(4))[0]
+    np.testing.assert_allclose(loss_full, 2 * loss_half, rtol=1e-6)
 
 
 # ---- hindsight replay ------------------------------------------------------------------------------
@@ -256,7 +288,7 @@ def test_resume_after_sigkill_is_bit_exact(tmp_path):
 
 @pytest.mark.parametrize(("arguments", "message"), [
     (["baseline.ibc.her_relabel=2"], "baseline.ibc.her_relabel=2: her_relabel must be in [0, 1], got 2.0"),
-    (["baseline.ibc.pool_size=10"], "pool_size (10) must be >= slots (50)"),
+    (["baseline.ibc.pool_size=10"], "baseline.ibc.pool_size (10) must be >= baseline.ibc.slots (50)"),
     (["baseline.ibc.sac.weight_init=he"], "unknown weight_init 'he'; valid: xavier, orthogonal"),
     (["baseline.ibc.sac.actor_update_every=0"], "actor_update_every must be > 0, got 0"),
     (["baseline.ibc.segment_length=0"], "segment_length must be > 0, got 0"),

@@ -171,9 +171,6 @@ class IBCConfig:
         for name in ("random_steps", "cost_c"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.pool_size < self.slots:
-            raise ValueError(f"pool_size ({self.pool_size}) must be >= slots ({self.slots}): each slot is "
-                             "matched to its own pool trajectory")
         if self.segment_length is not None and self.segment_length <= 0:
             raise ValueError(f"segment_length must be > 0, got {self.segment_length}")
         if not 0.0 <= self.her_relabel <= 1.0:

@@ -23,11 +23,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from morefree_jax.baselines.buffer import Ring
 from morefree_jax.baselines.sac import SACBatch
 
 
 @struct.dataclass
-class SegmentBuffer:
+class SegmentBuffer(Ring):
     obs: jax.Array  # (N, O)
     goal: jax.Array  # (N, O) the goal the segment pursued, a full observation vector
     action: jax.Array  # (N, A)
@@ -37,14 +38,6 @@ class SegmentBuffer:
     count: jax.Array  # transitions ever written
     committed: jax.Array  # count at the last segment end: positions below it are sampleable
     segments: jax.Array  # segments ended so far (the id of the open one)
-
-    @property
-    def capacity(self) -> int:
-        return self.obs.shape[0]
-
-    @property
-    def size(self) -> jax.Array:
-        return jnp.minimum(self.count, self.capacity)
 
     @property
     def oldest(self) -> jax.Array:

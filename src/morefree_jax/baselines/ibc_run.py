@@ -28,20 +28,10 @@ from morefree_jax.baselines.curriculum import Curriculum, CurriculumState
 from morefree_jax.baselines.her import SegmentBuffer, end_segment_where, init_segment_buffer, insert_where
 from morefree_jax.baselines.ibc import BACKWARD, FORWARD, IBCForwardPolicy, IBCLearner
 from morefree_jax.baselines.ibc_tasks import ibc_task
+from morefree_jax.baselines.run_fns import ModelFreeStream as IBCStream
 from morefree_jax.baselines.run_fns import _Parts as ModelFreeParts
 from morefree_jax.batching import lazy_cond
 from morefree_jax.evaluate import evaluate_policy, evaluation_metrics
-
-
-@struct.dataclass
-class IBCStream:
-    """The env stream: the current goal, who acts, steps into the segment, the stream position."""
-
-    env_state: Any
-    goal: jax.Array
-    direction: jax.Array
-    segment_step: jax.Array
-    steps: jax.Array
 
 
 @struct.dataclass
@@ -63,6 +53,9 @@ def make_ibc_fns(config, env):
 
     cfg = config.baseline.ibc
     task = ibc_task(env, cfg.segment_length)
+    if cfg.pool_size < cfg.slots:  # checked here, not per key: the CLI sets keys one at a time
+        raise ValueError(f"baseline.ibc.pool_size ({cfg.pool_size}) must be >= baseline.ibc.slots "
+                         f"({cfg.slots}): each slot is matched to its own pool trajectory")
     learner = IBCLearner(cfg, env, task)
     parts = IBCParts(config, env, learner, Curriculum(env, task, cfg, cfg.sac.discount))
     return RunFns(parts.init, parts.prefill, parts.collect, None, parts.evaluate, parts.visitation, env,
