@@ -171,33 +171,36 @@ def tabletop_parts():
     return IBCParts(config, env, IBCLearner(ibc, env, task), Curriculum(env, task, ibc, ibc.sac.discount))
 
 
-@pytest.mark.parametrize(("direction", "success", "segment_step", "ends", "next_direction"), [
-    (FORWARD, True, 3, True, FORWARD),  # success: a new forward goal, no backward segment
-    (FORWARD, False, SEGMENT - 1, True, BACKWARD),  # failed forward: the backward agent runs
-    (FORWARD, False, 3, False, FORWARD),  # mid-segment
-    (BACKWARD, True, 3, True, FORWARD),
-    (BACKWARD, False, SEGMENT - 1, True, FORWARD),
-])
-def test_backward_runs_only_after_a_failed_forward_segment(direction, success, segment_step, ends,
-                                                           next_direction):
+SWITCH_CASES = [  # (direction, success, segment_step) -> (ends, next direction)
+    ((FORWARD, True, 3), (True, FORWARD)),  # success: a new forward goal, no backward segment
+    ((FORWARD, False, SEGMENT - 1), (True, BACKWARD)),  # failed forward: the backward agent runs
+    ((FORWARD, False, 3), (False, FORWARD)),  # mid-segment
+    ((BACKWARD, True, 3), (True, FORWARD)),
+    ((BACKWARD, False, SEGMENT - 1), (True, FORWARD)),
+]
+
+
+def test_backward_runs_only_after_a_failed_forward_segment():
     parts = tabletop_parts()
     state = jax.jit(parts.init)(jax.random.PRNGKey(0))
-    stream = state.stream.replace(direction=jnp.asarray(direction, jnp.int32),
-                                  segment_step=jnp.asarray(segment_step, jnp.int32))
 
     @jax.jit
-    def switch(stream, curriculum, success):
+    def switch(direction, success, segment_step):  # one compile serves every case
+        stream = state.stream.replace(direction=direction, segment_step=segment_step)
         end, reset = parts.segment_end(stream, success)
-        following, _ = parts.next_segment(stream, curriculum, stream.env_state, success, end, reset,
+        following, _ = parts.next_segment(stream, state.curriculum, stream.env_state, success, end, reset,
                                           jax.random.PRNGKey(1))
         return end, following
 
-    end, following = switch(stream, state.curriculum, jnp.asarray(success))
-    assert bool(end) == ends and int(following.direction) == next_direction
-    assert int(following.segment_step) == (0 if ends else segment_step + 1)
-    if ends and next_direction == BACKWARD:  # a proprioceptive goal near the slot's start: gripper xy
-        start = state.curriculum.backward_slots[state.curriculum.slot]
-        assert np.all(np.abs(following.goal[:2] - start[:2]) <= parts.curriculum.task.backward_noise + 1e-6)
+    for (direction, success, segment_step), (ends, next_direction) in SWITCH_CASES:
+        end, following = switch(jnp.asarray(direction, jnp.int32), jnp.asarray(success),
+                                jnp.asarray(segment_step, jnp.int32))
+        assert bool(end) == ends and int(following.direction) == next_direction
+        assert int(following.segment_step) == (0 if ends else segment_step + 1)
+        if ends and next_direction == BACKWARD:  # a proprioceptive goal near the slot's start: gripper xy
+            start = state.curriculum.backward_slots[state.curriculum.slot]
+            noise = parts.curriculum.task.backward_noise
+            assert np.all(np.abs(following.goal[:2] - start[:2]) <= noise + 1e-6)
 
 
 def stream_directions(state) -> tuple[np.ndarray, np.ndarray]:
