@@ -18,8 +18,11 @@ forward goal and the backward goal that returns to where it is reachable from co
 The valuation and costs are compiled (a lax.map over the pool, in the scan); the assignment itself is
 scipy's linear_sum_assignment through jax.pure_callback (IBC's min-cost flow solves the same problem). It
 runs only under a lazy_cond at the matching segments (every `match_every` forward segments, i.e. every
-thousand or more env steps), on a (slots, pool_size) matrix that scipy solves in milliseconds (measured
-in tests/test_ibc.py), so the host round trip costs nothing per env step and keeps one fused chunk.
+thousand or more env steps), on a (slots, pool_size) matrix that scipy solves in 0.1-0.2 ms (50 x 1000,
+measured 2026 on this project's 2-core CPU), so the host round trip costs nothing per env step and keeps
+one fused chunk. The whole matching at IBC's sizes (push: pool 1000 x 50 steps, 10 actions, 3 x 512 nets)
+took 11 s there, nearly all of it the compiled valuation (about 10% of the 1,000+ UTD-1 updates between
+two matchings at batch 512).
 """
 
 from __future__ import annotations
