@@ -21,8 +21,8 @@ runs only under a lazy_cond at the matching segments (every `match_every` forwar
 thousand or more env steps), on a (slots, pool_size) matrix that scipy solves in 0.1-0.2 ms (50 x 1000,
 measured 2026 on this project's 2-core CPU), so the host round trip costs nothing per env step and keeps
 one fused chunk. The whole matching at IBC's sizes (push: pool 1000 x 50 steps, 10 actions, 3 x 512 nets)
-took 11 s there, nearly all of it the compiled valuation (about 10% of the 1,000+ UTD-1 updates between
-two matchings at batch 512).
+took 11 s there, nearly all of it the compiled valuation (by a FLOP estimate, not measured, about 10% of the
+1,000+ UTD-1 updates at batch 512 between two matchings).
 """
 
 from __future__ import annotations
