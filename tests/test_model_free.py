@@ -239,7 +239,7 @@ def test_r3l_resume_after_sigkill_is_bit_exact(tmp_path):
 
 @pytest.mark.parametrize(("arguments", "message"), [
     (["agent=sac"], "unknown agent 'sac'; valid agents: morefree, rf_peg, peg, dreamer_gc, mf_no_bfge, "
-                    "mf_no_imag, mf_task_only, oracle_sac, r3l, medal"),
+                    "mf_no_imag, mf_task_only, oracle_sac, r3l, medal, ibc"),
     (["agent=r3l", "baseline.sac.lr=-1"], "baseline.sac.lr=-1: lr must be > 0, got -1.0"),
     (["agent=r3l", "baseline.chunk_len=0"], "baseline.chunk_len=0: chunk_len must be > 0, got 0"),
     (["agent=r3l", "baseline.classifier.batch=7"], "batch must be even"),

@@ -82,17 +82,35 @@ def _as_json(tree: dict) -> dict:
 
 # Config sections (dotted) added after run dirs existed. A stored config without one of them was written by
 # a run of an agent that does not read it (the `baseline` keys belong to the model-free agents, which always
-# wrote them; `baseline.discriminator` to medal, added after oracle_sac and r3l), so such a run dir resumes.
-LATER_SECTIONS = ("baseline", "baseline.discriminator")
+# wrote them; `baseline.ibc` only the ibc agent reads, `baseline.discriminator` only medal), so such a run
+# dir resumes.
+LATER_SECTIONS = ("baseline", "baseline.ibc", "baseline.discriminator")
+
+
+def later_keys() -> dict:
+    """Keys added to an existing section after run dirs existed, with the value a run that predates them
+    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained)."""
+    from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
+
+    return {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
+
+
+def _has_section(tree: dict, dotted: str) -> bool:
+    for part in dotted.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return False
+        tree = tree[part]
+    return True
 
 
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose values differ between two nested config dicts (missing on one side counts, except
-    a LATER_SECTIONS section the stored config lacks). Both are compared in their JSON form (tuples and
-    lists are equal)."""
-    stored_flat, current_flat = _flatten_dict(_as_json(stored)), _flatten_dict(_as_json(current))
-    later = tuple(f"{section}." for section in LATER_SECTIONS
-                  if not any(key.startswith(f"{section}.") for key in stored_flat))
+    a LATER_SECTIONS section the stored config lacks and a later_keys() key it lacks, which held its
+    default). Both are compared in their JSON form (tuples and lists are equal)."""
+    stored_flat = {**_flatten_dict(_as_json(later_keys())), **_flatten_dict(_as_json(stored))}
+    current_flat = _flatten_dict(_as_json(current))
+    later = tuple(f"{section}." for section in LATER_SECTIONS if not _has_section(stored, section))
+    stored_flat = {key: value for key, value in stored_flat.items() if not key.startswith(later)}
     current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}
     keys = sorted(set(stored_flat) | set(current_flat))
     absent = "<absent>"

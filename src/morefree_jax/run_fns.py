@@ -108,6 +108,10 @@ def check_run_config(config: Config, env) -> None:
 def make_run_fns(config: Config, env, agent: Agent | None = None) -> RunFns:
     """The run's pure functions for `env` (agent: built from config.agent unless given). Model-free agents
     get theirs from baselines/run_fns.py (same contract; `train_updates` None: their collect trains)."""
+    if config.run.agent == "ibc":
+        from morefree_jax.baselines.ibc_run import make_ibc_fns
+
+        return make_ibc_fns(config, env)
     if is_model_free(config.run.agent):
         from morefree_jax.baselines.run_fns import make_model_free_fns
 

@@ -32,6 +32,7 @@ from typing import NamedTuple
 from morefree_jax.baselines.config import MODEL_FREE_AGENTS
 
 SEED_STEPS = 10_000  # the model-free agents' seed phase (MEDAL num_seed_frames), as run.prefill
+IBC_SEED_STEPS = 800  # ibc's own (baselines.md 4.1 num_seed_steps; its first 400 act at random)
 
 
 class Variant(NamedTuple):
@@ -72,9 +73,11 @@ def apply_variant(config, name: str):
     """The root config (config_run.Config) with the variant's schedule and imagination settings.
     Planner goals are searched afresh for every planner chunk; episodic PEG makes its one goal choice per
     hard-reset segment, so it searches once per segment (paper appendix, baselines). A model-free agent
-    gets MEDAL's 10,000 seed steps as its prefill and nothing else (it reads none of the learner keys)."""
+    gets its seed steps (MEDAL's 10,000, IBC's 800) as its prefill and nothing else (it reads none of the
+    learner keys)."""
     if is_model_free(name):
-        return dataclasses.replace(config, run=dataclasses.replace(config.run, prefill=SEED_STEPS))
+        seed_steps = IBC_SEED_STEPS if name == "ibc" else SEED_STEPS
+        return dataclasses.replace(config, run=dataclasses.replace(config.run, prefill=seed_steps))
     chosen = variant(name)
     schedule = dataclasses.replace(config.schedule, kind=chosen.schedule_kind, alpha=chosen.collect_alpha)
     agent = dataclasses.replace(config.agent, alpha=chosen.imagination_alpha)

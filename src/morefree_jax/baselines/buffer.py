@@ -28,15 +28,9 @@ class Stored(NamedTuple):
     not_done: jax.Array  # 0 on the last step of an episode or segment: no bootstrap across it
 
 
-@struct.dataclass
-class TransitionBuffer:
-    obs: jax.Array
-    goal: jax.Array
-    action: jax.Array
-    reward: jax.Array
-    next_obs: jax.Array
-    not_done: jax.Array
-    count: jax.Array  # transitions ever inserted (the ring keeps the newest `capacity`)
+class Ring:
+    """capacity and size of a ring buffer whose rows are `obs` and whose `count` counts every write (also
+    the ibc agent's segment replay, baselines/her.py)."""
 
     @property
     def capacity(self) -> int:
@@ -45,6 +39,17 @@ class TransitionBuffer:
     @property
     def size(self) -> jax.Array:
         return jnp.minimum(self.count, self.capacity)
+
+
+@struct.dataclass
+class TransitionBuffer(Ring):
+    obs: jax.Array
+    goal: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    not_done: jax.Array
+    count: jax.Array  # transitions ever inserted (the ring keeps the newest `capacity`)
 
 
 def init_buffer(capacity: int, obs_size: int, action_size: int) -> TransitionBuffer:

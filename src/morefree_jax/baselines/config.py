@@ -10,10 +10,25 @@ from __future__ import annotations
 
 import dataclasses
 
+WEIGHT_INITS = ("xavier", "orthogonal")
+# SACConfig fields added for IBC's variant: run dirs written before them resume with these at their defaults
+# (checkpoint.later_keys).
+SAC_OPTIONS_ADDED_FOR_IBC = ("hidden_depth", "weight_init", "log_std_squash", "critic_loss_weight",
+                             "alpha_update", "alpha_step_size", "alpha_bounds", "actor_update_every",
+                             "target_update_every", "target_entropy_per_dim")
+ALPHA_UPDATES = ("adam", "clipped_step")
+
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
-    """baselines.md section 2 (MEDAL `cfgs/oracle.yaml`, `agents.py`). target_entropy None: -|A|/2."""
+    """baselines.md section 2 (MEDAL `cfgs/oracle.yaml`, `agents.py`); the defaults are MEDAL's. The
+    options below them exist for IBC's variant (section 4.1, `IBCConfig.sac` sets them):
+    hidden_depth: ReLU layers per head; weight_init: xavier (uniform) or orthogonal, zero biases;
+    log_std_squash: tanh then affine into [log_std_min, log_std_max] instead of a hard clip;
+    critic_loss_weight: 0.5 (MEDAL) or 1 (IBC: MSE1 + MSE2); alpha_update: Adam on log alpha (MEDAL) or
+    IBC's plain step alpha <- clip(alpha - alpha_step_size * mean(-log pi - target entropy), alpha_bounds);
+    actor_update_every / target_update_every: the actor + alpha and the Polyak steps run on updates
+    0, k, 2k, ...; target_entropy None: target_entropy_per_dim * |A| (MEDAL -|A|/2, IBC -|A|)."""
 
     feature_dim: int = 50
     hidden_dim: int = 256
@@ -26,20 +41,44 @@ class SACConfig:
     log_std_min: float = -20.0
     log_std_max: float = 2.0
     batch_size: int = 256
+    hidden_depth: int = 2
+    weight_init: str = "xavier"
+    log_std_squash: bool = False
+    critic_loss_weight: float = 0.5
+    alpha_update: str = "adam"
+    alpha_step_size: float = 1e-5
+    alpha_bounds: tuple[float, float] = (0.001, 0.5)
+    actor_update_every: int = 1
+    target_update_every: int = 1
+    target_entropy_per_dim: float = -0.5
 
     def __post_init__(self):
-        for name in ("feature_dim", "hidden_dim", "lr", "init_temperature", "batch_size"):
+        for name in ("feature_dim", "hidden_dim", "lr", "init_temperature", "batch_size", "hidden_depth",
+                     "critic_loss_weight", "alpha_step_size", "actor_update_every", "target_update_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("discount", "tau"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.weight_init not in WEIGHT_INITS:
+            raise ValueError(f"unknown weight_init {self.weight_init!r}; valid: "
+                             f"{', '.join(WEIGHT_INITS)}")
+        if self.alpha_update not in ALPHA_UPDATES:
+            raise ValueError(f"unknown alpha_update {self.alpha_update!r}; valid: "
+                             f"{', '.join(ALPHA_UPDATES)}")
+        if len(self.alpha_bounds) != 2 or not 0 < self.alpha_bounds[0] <= self.alpha_bounds[1]:
+            raise ValueError(f"alpha_bounds must be (low, high) with 0 < low <= high, "
+                             f"got {self.alpha_bounds}")
+        if self.log_std_min >= self.log_std_max:
+            raise ValueError(f"log_std_min must be < log_std_max, "
+                             f"got {self.log_std_min} >= {self.log_std_max}")
 
 
 MODEL_FREE_AGENTS = {
     "oracle_sac": "Oracle: episodic SAC on the evaluation task, sparse reward (the only agent with resets)",
     "r3l": "R3L: forward SAC on a learned goal classifier, backward RND exploration (no env reward)",
     "medal": "MEDAL: forward SAC on the sparse reward, backward SAC back to demonstration states (demos)",
+    "ibc": "IBC: forward/backward SAC + HER, backward only after forward failure, bidirectional curriculum",
 }
 
 
@@ -89,6 +128,56 @@ class RNDConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
 
 
+def _ibc_sac() -> SACConfig:
+    """baselines.md 4.1 (IBC `ibc.py`, `config_default.yaml`): 3 x 512 heads, orthogonal init, log-std
+    tanh-squashed into [-10, 2], lr 1e-4, batch 512, alpha0 0.5 with the clipped plain step, target entropy
+    -|A|, actor and alpha every 2 updates, target every 2 with tau 0.01, loss MSE1 + MSE2, reward in {-1, 0}
+    unscaled."""
+    return SACConfig(hidden_dim=512, hidden_depth=3, weight_init="orthogonal", log_std_squash=True,
+                     log_std_min=-10.0, log_std_max=2.0, lr=1e-4, batch_size=512, init_temperature=0.5,
+                     alpha_update="clipped_step", target_entropy_per_dim=-1.0, actor_update_every=2,
+                     target_update_every=2, tau=0.01, critic_loss_weight=1.0, reward_scale=1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class IBCConfig:
+    """IBC (baselines.md section 4; its per-task values live in baselines/ibc_tasks.py).
+    random_steps: uniform random actions first (`num_random_steps` 400); the seed phase without updates
+    is run.prefill, which the ibc agent sets to `num_seed_steps` 800 (variants.py). her_relabel: share of
+    each batch relabelled with a future achieved goal (`n_sampled_goal` 4 -> 4/5). pool_size: FIFO of
+    forward trajectories (`pool_length` 1000); slots: curriculum goals (`num_episodes` 50); match_first /
+    match_every: the matching runs at forward segment 5 and every 20 (`hgg_sampler_update_frequency`);
+    cost_c / cost_l: HGG's c 3 and L 5; value_samples: actions averaged in a goal's value (10);
+    goal_draws: curriculum draws before falling back to a task goal (2). segment_length: None takes the
+    task's (baselines/ibc_tasks.py); set, it replaces it (short segments for tests)."""
+
+    sac: SACConfig = dataclasses.field(default_factory=_ibc_sac)
+    random_steps: int = 400
+    her_relabel: float = 0.8
+    pool_size: int = 1000
+    slots: int = 50
+    match_first: int = 5
+    match_every: int = 20
+    cost_c: float = 3.0
+    cost_l: float = 5.0
+    value_samples: int = 10
+    goal_draws: int = 2
+    segment_length: int | None = None
+
+    def __post_init__(self):
+        for name in ("pool_size", "slots", "match_first", "match_every", "cost_l", "value_samples",
+                     "goal_draws"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("random_steps", "cost_c"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.segment_length is not None and self.segment_length <= 0:
+            raise ValueError(f"segment_length must be > 0, got {self.segment_length}")
+        if not 0.0 <= self.her_relabel <= 1.0:
+            raise ValueError(f"her_relabel must be in [0, 1], got {self.her_relabel}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelFreeConfig:
     """classifier: R3L's goal classifier. discriminator: MEDAL's backward reward, a classifier of
@@ -104,6 +193,7 @@ class ModelFreeConfig:
     classifier: ClassifierConfig = dataclasses.field(default_factory=ClassifierConfig)
     discriminator: ClassifierConfig = dataclasses.field(default_factory=ClassifierConfig)
     rnd: RNDConfig = dataclasses.field(default_factory=RNDConfig)
+    ibc: IBCConfig = dataclasses.field(default_factory=IBCConfig)
     chunk_len: int = 1000
     replay_capacity: int = 1_000_000
     switch_every: int = 300

@@ -37,57 +37,64 @@ class SACBatch(NamedTuple):
     not_done: jax.Array  # (B,) 0 where the episode ended on that step (no bootstrap), else 1
 
 
-def _dense(features: int) -> nn.Dense:
+def _dense(features: int, weight_init: str) -> nn.Dense:
     # built here, not at import: making an initializer starts JAX's backend (importing changes nothing)
-    return nn.Dense(features, kernel_init=nn.initializers.xavier_uniform(), bias_init=nn.initializers.zeros)
+    kernel_init = (nn.initializers.orthogonal() if weight_init == "orthogonal"
+                   else nn.initializers.xavier_uniform())
+    return nn.Dense(features, kernel_init=kernel_init, bias_init=nn.initializers.zeros)
 
 
 class _Trunk(nn.Module):
     feature_dim: int
+    weight_init: str
 
     @nn.compact
     def __call__(self, obs):
-        return jnp.tanh(nn.LayerNorm()(_dense(self.feature_dim)(obs)))
+        return jnp.tanh(nn.LayerNorm()(_dense(self.feature_dim, self.weight_init)(obs)))
 
 
 class _Head(nn.Module):
     hidden_dim: int
     out: int
+    depth: int
+    weight_init: str
 
     @nn.compact
     def __call__(self, x):
-        x = nn.relu(_dense(self.hidden_dim)(x))
-        x = nn.relu(_dense(self.hidden_dim)(x))
-        return _dense(self.out)(x)
+        for _ in range(self.depth):
+            x = nn.relu(_dense(self.hidden_dim, self.weight_init)(x))
+        return _dense(self.out, self.weight_init)(x)
 
 
 class Actor(nn.Module):
-    """obs -> (mean, log_std) (..., A), log_std clipped to [log_std_min, log_std_max]."""
+    """obs -> (mean, log_std) (..., A), log_std clipped (or tanh-squashed) into [log_std_min, log_std_max]."""
 
     action_size: int
-    feature_dim: int
-    hidden_dim: int
-    log_std_min: float
-    log_std_max: float
+    config: SACConfig
 
     @nn.compact
     def __call__(self, obs):
-        out = _Head(self.hidden_dim, 2 * self.action_size)(_Trunk(self.feature_dim)(obs))
+        cfg = self.config
+        trunk = _Trunk(cfg.feature_dim, cfg.weight_init)(obs)
+        out = _Head(cfg.hidden_dim, 2 * self.action_size, cfg.hidden_depth, cfg.weight_init)(trunk)
         mean, log_std = jnp.split(out, 2, axis=-1)
-        return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+        if cfg.log_std_squash:  # IBC: a smooth squash instead of MEDAL's hard clip
+            unit = 0.5 * (jnp.tanh(log_std) + 1.0)
+            return mean, cfg.log_std_min + (cfg.log_std_max - cfg.log_std_min) * unit
+        return mean, jnp.clip(log_std, cfg.log_std_min, cfg.log_std_max)
 
 
 class Critic(nn.Module):
     """(obs, action) -> (q1, q2) (...,): a shared trunk on obs, twin heads on (features, action)."""
 
-    feature_dim: int
-    hidden_dim: int
+    config: SACConfig
 
     @nn.compact
     def __call__(self, obs, action):
-        features = jnp.concatenate([_Trunk(self.feature_dim)(obs), action], axis=-1)
-        q1 = _Head(self.hidden_dim, 1)(features)[..., 0]
-        q2 = _Head(self.hidden_dim, 1)(features)[..., 0]
+        cfg = self.config
+        features = jnp.concatenate([_Trunk(cfg.feature_dim, cfg.weight_init)(obs), action], axis=-1)
+        q1 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init)(features)[..., 0]
+        q2 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init)(features)[..., 0]
         return q1, q2
 
 
@@ -100,8 +107,7 @@ class SACState:
 
 
 def _modules(config: SACConfig, action_size: int) -> tuple[Actor, Critic]:
-    actor = Actor(action_size, config.feature_dim, config.hidden_dim, config.log_std_min, config.log_std_max)
-    return actor, Critic(config.feature_dim, config.hidden_dim)
+    return Actor(action_size, config), Critic(config)
 
 
 def _optimizer(config: SACConfig) -> optax.GradientTransformation:
@@ -109,7 +115,9 @@ def _optimizer(config: SACConfig) -> optax.GradientTransformation:
 
 
 def target_entropy(config: SACConfig, action_size: int) -> float:
-    return -action_size / 2 if config.target_entropy is None else config.target_entropy
+    if config.target_entropy is None:
+        return config.target_entropy_per_dim * action_size
+    return config.target_entropy
 
 
 def init(config: SACConfig, obs_size: int, action_size: int, key: jax.Array) -> SACState:
@@ -136,7 +144,8 @@ def squashed_sample(mean: jax.Array, log_std: jax.Array, key: jax.Array) -> tupl
 
 
 def _action_size(actor_params) -> int:
-    return actor_params["params"]["_Head_0"]["Dense_2"]["bias"].shape[-1] // 2
+    head = actor_params["params"]["_Head_0"]
+    return head[f"Dense_{len(head) - 1}"]["bias"].shape[-1] // 2  # the last layer: mean and log-std
 
 
 def policy(config: SACConfig, actor_params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -151,7 +160,7 @@ def act(config: SACConfig, actor_params, obs: jax.Array, key: jax.Array, determi
 
 
 def q_values(config: SACConfig, critic_params, obs, action) -> tuple[jax.Array, jax.Array]:
-    return Critic(config.feature_dim, config.hidden_dim).apply(critic_params, obs, action)
+    return Critic(config).apply(critic_params, obs, action)
 
 
 def critic_target(config: SACConfig, state: SACState, batch: SACBatch, key: jax.Array) -> jax.Array:
@@ -165,7 +174,7 @@ def critic_target(config: SACConfig, state: SACState, batch: SACBatch, key: jax.
 
 def critic_loss(config: SACConfig, critic_params, batch: SACBatch, target: jax.Array):
     q1, q2 = q_values(config, critic_params, batch.obs, batch.action)
-    loss = 0.5 * (jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2))
+    loss = config.critic_loss_weight * (jnp.mean((q1 - target) ** 2) + jnp.mean((q2 - target) ** 2))
     return loss, {"loss": loss, "q": jnp.mean(q1), "target": jnp.mean(target)}
 
 
@@ -175,7 +184,7 @@ def actor_loss(config: SACConfig, actor_params, critic_params, alpha, obs, key):
     action, log_pi = squashed_sample(mean, log_std, key)
     q1, q2 = q_values(config, critic_params, obs, action)
     loss = jnp.mean(alpha * log_pi - jnp.minimum(q1, q2))
-    return loss, {"loss": loss, "entropy": -jnp.mean(log_pi)}
+    return loss, {"loss": loss, "entropy": -jnp.mean(log_pi), "log_pi": log_pi}
 
 
 def alpha_loss(log_alpha, log_pi: jax.Array, entropy_target: float):
@@ -184,22 +193,46 @@ def alpha_loss(log_alpha, log_pi: jax.Array, entropy_target: float):
 
 
 def update(config: SACConfig, state: SACState, batch: SACBatch, key: jax.Array) -> tuple[SACState, dict]:
-    """One SAC update in MEDAL's order: critic, actor, temperature, Polyak target (module docstring)."""
+    """One SAC update in MEDAL's order: critic, actor, temperature, Polyak target (module docstring). With
+    actor_update_every / target_update_every > 1 (IBC) the later steps run only on every k-th update."""
     key_target, key_actor, key_alpha = jax.random.split(key, 3)
     optimizer = _optimizer(config)
     target = jax.lax.stop_gradient(critic_target(config, state, batch, key_target))
     critic, critic_aux, _ = gradient_update(
         state.critic, lambda p: critic_loss(config, p, batch, target), optimizer)
-    alpha = jnp.exp(state.log_alpha.params)
-    actor, actor_aux, _ = gradient_update(
-        state.actor, lambda p: actor_loss(config, p, critic.params, alpha, batch.obs, key_actor), optimizer)
-    _, fresh_log_pi = squashed_sample(*policy(config, actor.params, batch.obs), key_alpha)
-    entropy_target = target_entropy(config, batch.action.shape[-1])
-    log_alpha, _, _ = gradient_update(state.log_alpha, lambda p: alpha_loss(p, fresh_log_pi, entropy_target),
-                                      optimizer)
+    actor_step = lambda: _actor_and_alpha(config, state, critic, batch, key_actor, key_alpha)  # noqa: E731
+    if config.actor_update_every == 1:  # MEDAL: no cond, the graph of the original learner
+        actor, log_alpha, actor_aux = actor_step()
+    else:
+        skipped = (state.actor, state.log_alpha, {"loss": jnp.zeros(()), "entropy": jnp.zeros(())})
+        actor, log_alpha, actor_aux = jax.lax.cond(state.updates % config.actor_update_every == 0,
+                                                   actor_step, lambda: skipped)
     polyak = jax.tree.map(lambda t, p: (1 - config.tau) * t + config.tau * p, critic.target, critic.params)
+    if config.target_update_every > 1:
+        polyak = jax.tree.map(lambda new, old: jnp.where(state.updates % config.target_update_every == 0,
+                                                         new, old), polyak, critic.target)
     new_state = SACState(actor, critic.replace(target=polyak), log_alpha, state.updates + 1)
     metrics = {"sac/critic_loss": critic_aux["loss"], "sac/actor_loss": actor_aux["loss"],
                "sac/q": critic_aux["q"], "sac/target": critic_aux["target"],
                "sac/entropy": actor_aux["entropy"], "sac/alpha": jnp.exp(log_alpha.params)}
     return new_state, metrics
+
+
+def _actor_and_alpha(config: SACConfig, state: SACState, critic: NetState, batch: SACBatch, key_actor,
+                     key_alpha) -> tuple[NetState, NetState, dict]:
+    """The actor step on the updated critic, then the temperature step: MEDAL's Adam on log alpha with a
+    fresh sample of the updated actor, or IBC's clipped plain step on alpha with the actor step's log pi."""
+    optimizer = _optimizer(config)
+    alpha = jnp.exp(state.log_alpha.params)
+    actor, actor_aux, _ = gradient_update(
+        state.actor, lambda p: actor_loss(config, p, critic.params, alpha, batch.obs, key_actor), optimizer)
+    entropy_target = target_entropy(config, batch.action.shape[-1])
+    log_pi = actor_aux.pop("log_pi")
+    if config.alpha_update == "clipped_step":
+        step = config.alpha_step_size * jnp.mean(-log_pi - entropy_target)
+        new_alpha = jnp.clip(alpha - step, *config.alpha_bounds)
+        return actor, state.log_alpha.replace(params=jnp.log(new_alpha)), actor_aux
+    _, fresh_log_pi = squashed_sample(*policy(config, actor.params, batch.obs), key_alpha)
+    log_alpha, _, _ = gradient_update(state.log_alpha, lambda p: alpha_loss(p, fresh_log_pi, entropy_target),
+                                      optimizer)
+    return actor, log_alpha, actor_aux

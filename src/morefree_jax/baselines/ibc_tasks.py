@@ -1,0 +1,75 @@
+"""IBC's per-task settings (reference/baselines.md sections 4.3-4.5 and 7), keyed by our task names.
+
+IBC keeps these in dicts keyed by task in its `train.py` and `env_utils.py`; we keep them together here,
+in the ibc agent's own file, rather than in each task's `default_config()`, so that they sit beside the
+one agent that reads them (and no env file changes for a baseline).
+
+Observation layouts (envs_mjx/*.py) decide the proprioceptive part of a backward goal:
+point_umaze (x, y, heading, velocities): xy [0:2]; tabletop (gripper xy, mug xy, attachment): gripper xy
+[0:2]; sawyer_door (hand xyz, gripper opening, handle xyz): hand [0:3]; fetch (grip xyz, block xyz, ...):
+grip [0:3]; ant (qpos, qvel): torso xy [0:2].
+
+push_hard / pick_place_hard use IBC's Fetch settings (baselines.md 7: "unchanged IBC defaults").
+ant is not in IBC's code; our choices: the proprioceptive goal is the torso xy (the ant's goal space, as
+UMaze's point xy), backward threshold = the task's success threshold (1.0), noises scaled from UMaze's
+(uniform +-0.1 backward, Gaussian 0.3 curriculum, pool move 0.1), segment length 200 (IBC's longest,
+Sawyer's; the ant's 500-step evaluation episode would make the pool and its valuation 2.5x larger) and
+K = 50 reset targets as for the other goal-distribution tasks.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+
+class IBCTask(NamedTuple):
+    """segment_length: `max_episode_timesteps`; proprio_dims: the backward goal's observation indices;
+    backward_threshold: its success distance; backward_noise: uniform +- noise on a backward goal;
+    curriculum_noise: Gaussian std on a curriculum goal; curriculum_noise_dims: which goal_dims (positions
+    in env.goal_dims) get it; pool_move: least movement of a forward segment's achieved goal or agent part
+    to enter the pool; num_targets: K target pairs; initial_target: the first target's desired goal is the
+    initial state (EARL tasks: K = 2 {initial, goal}, K = 5 {initial, 4 goals})."""
+
+    segment_length: int
+    proprio_dims: tuple[int, ...]
+    backward_threshold: float
+    backward_noise: float
+    curriculum_noise: float
+    curriculum_noise_dims: tuple[int, ...]
+    pool_move: float
+    num_targets: int
+    initial_target: bool
+
+
+_FETCH = IBCTask(segment_length=50, proprio_dims=(0, 1, 2), backward_threshold=0.05, backward_noise=0.05,
+                 curriculum_noise=0.03, curriculum_noise_dims=(0, 1, 2), pool_move=0.01, num_targets=50,
+                 initial_target=False)
+
+IBC_TASKS: dict[str, IBCTask] = {
+    "point_umaze": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.6,
+                           backward_noise=0.1, curriculum_noise=0.3, curriculum_noise_dims=(0, 1),
+                           pool_move=0.1, num_targets=50, initial_target=False),
+    "tabletop": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.2, backward_noise=0.05,
+                        curriculum_noise=0.1, curriculum_noise_dims=(2, 3), pool_move=0.01, num_targets=5,
+                        initial_target=True),
+    "sawyer_door": IBCTask(segment_length=200, proprio_dims=(0, 1, 2), backward_threshold=0.05,
+                           backward_noise=0.05, curriculum_noise=0.005, curriculum_noise_dims=(0, 1),
+                           pool_move=0.01, num_targets=2, initial_target=True),
+    "push": _FETCH,
+    "pick_place": _FETCH,
+    "push_hard": _FETCH,
+    "pick_place_hard": _FETCH,
+    "ant": IBCTask(segment_length=200, proprio_dims=(0, 1), backward_threshold=1.0, backward_noise=0.1,
+                   curriculum_noise=0.3, curriculum_noise_dims=(0, 1), pool_move=0.1, num_targets=50,
+                   initial_target=False),
+}
+
+
+def ibc_task(env, segment_length: int | None = None) -> IBCTask:
+    """The settings of env's task (segment_length, if given, replaces the task's); a task without them is
+    a one-line error."""
+    if env.name not in IBC_TASKS:
+        raise ValueError(f"ibc has no settings for task {env.name!r}; tasks with settings: "
+                         f"{', '.join(IBC_TASKS)}")
+    task = IBC_TASKS[env.name]
+    return task if segment_length is None else task._replace(segment_length=segment_length)
