@@ -27,7 +27,7 @@ from morefree_jax.baselines.config import IBCConfig
 from morefree_jax.baselines.curriculum import Curriculum
 from morefree_jax.baselines.ibc import BACKWARD, FORWARD, IBCLearner
 from morefree_jax.baselines.ibc_run import IBCParts
-from morefree_jax.baselines.ibc_tasks import ibc_task
+from morefree_jax.baselines.ibc_tasks import corridor_points, ibc_task
 from morefree_jax.checkpoint import latest_valid
 from morefree_jax.config_run import resolve_config
 from morefree_jax.logger import read_metrics
@@ -137,6 +137,20 @@ def test_matching_picks_the_least_cost_assignment():
     columns = curriculum_lib.assignment(big)
     print(f"linear_sum_assignment 50 x 1000: {1e3 * (time.perf_counter() - start):.1f} ms")
     assert len(set(columns.tolist())) == 50
+
+
+def test_point_umaze_targets_lie_on_ibc_corridor_points():
+    env = envs_mjx.make("point_umaze")
+    task = ibc_task(env)
+    points = corridor_points(task)
+    assert points.shape == (30, 2) and np.allclose(points[[0, -1]], [[0.0, 0.0], [0.0, 8.0]])
+    gaps = np.linalg.norm(np.diff(points, axis=0), axis=1)  # even along the U (a chord cuts each corner)
+    assert np.sum(np.isclose(gaps, 24.0 / 29)) >= 27 and np.all(gaps <= 24.0 / 29 + 1e-9)
+    curriculum = Curriculum(env, task, IBCConfig(), 0.99)
+    _, goals = curriculum.target_pairs(jax.random.PRNGKey(0))
+    offsets = np.abs(np.asarray(goals)[:, None, :2] - points[None]).max(-1)  # (K, 30) inf-norm
+    assert goals.shape == (50, env.observation_size) and np.all(offsets.min(1) <= 0.1 + 1e-6)
+    assert len({int(i) for i in offsets.argmin(1)}) > 10  # spread over the corridor, not one point
 
 
 def test_matching_costs_follow_the_formula_on_a_tiny_pool():

@@ -66,10 +66,13 @@ def records_without_time(run_dir) -> list[dict]:
             for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
 
 
-# The ablations combine code paths the paper agents already run (mf_no_bfge: rf_peg's schedule with the
-# imagination mix; mf_no_imag and mf_task_only: morefree's schedule with alpha 0 or 1); their whole runs
-# (~55 s of compiles each) are in the slow suite, their settings in test_variants.py.
-COMBINED_PATHS = ("mf_no_bfge", "mf_no_imag", "mf_task_only")
+# Whole runs (~55 s of compiles each) of morefree and rf_peg stay in the fast suite; the others are in the
+# slow suite. The ablations combine code paths the paper agents already run (mf_no_bfge: rf_peg's schedule
+# with the imagination mix; mf_no_imag and mf_task_only: morefree's schedule with alpha 0 or 1); peg's
+# episodic goal and dreamer_gc's eval-only chunk are checked chunk by chunk in test_collect.py
+# (test_episodic_goal_and_phases_span_the_hard_reset_segment, test_eval_only_without_explore_...), and the
+# driver around them is the same. Their settings are in test_variants.py.
+COMBINED_PATHS = ("peg", "dreamer_gc", "mf_no_bfge", "mf_no_imag", "mf_task_only")
 
 
 @pytest.mark.parametrize("agent", [pytest.param(agent, marks=pytest.mark.slow) if agent in COMBINED_PATHS

@@ -37,7 +37,7 @@ from flax import struct
 from scipy.optimize import linear_sum_assignment
 
 from morefree_jax.baselines.config import IBCConfig
-from morefree_jax.baselines.ibc_tasks import IBCTask
+from morefree_jax.baselines.ibc_tasks import IBCTask, corridor_points
 from morefree_jax.batching import lazy_cond
 
 NO_MATCH = 1e9  # cost of an empty pool row: never preferred over a real trajectory
@@ -136,10 +136,18 @@ class Curriculum:
 
     def target_pairs(self, key) -> tuple[jax.Array, jax.Array]:
         """K target pairs (baselines.md 4.4): env draws; in the EARL tasks the first desired goal is the
-        initial state itself (IBC's {initial, goal states})."""
-        init, goal = self.reset_pairs(key, self.task.num_targets)
+        initial state itself (IBC's {initial, goal states}); on PointUMaze the desired goals are draws of
+        IBC's 30 corridor points with uniform noise (ibc_tasks.corridor_points)."""
+        key_pairs, key_point, key_noise = jax.random.split(key, 3)
+        init, goal = self.reset_pairs(key_pairs, self.task.num_targets)
         if self.task.initial_target:
             goal = goal.at[0].set(init[0])
+        if self.task.corridor:
+            points = jnp.asarray(corridor_points(self.task), jnp.float32)
+            chosen = points[jax.random.randint(key_point, (self.task.num_targets,), 0, len(points))]
+            noise = self.task.corridor_noise
+            chosen = chosen + jax.random.uniform(key_noise, chosen.shape, minval=-noise, maxval=noise)
+            goal = goal.at[:, self.goal_dims].set(chosen)
         return init, goal
 
     def record(self, state: CurriculumState, obs, next_obs, segment_step) -> CurriculumState:

@@ -21,10 +21,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
+
 
 class IBCTask(NamedTuple):
     """segment_length: `max_episode_timesteps`; proprio_dims: the backward goal's observation indices;
     backward_threshold: its success distance; backward_noise: uniform +- noise on a backward goal;
+    corridor (point_umaze): the target pairs' desired goals are `corridor_points` evenly spaced points
+    along this polyline (goal_dims) plus uniform +- corridor_noise, IBC's replacement of UMaze's goal set;
     curriculum_noise: Gaussian std on a curriculum goal; curriculum_noise_dims: which goal_dims (positions
     in env.goal_dims) get it; pool_move: least movement of a forward segment's achieved goal or agent part
     to enter the pool; num_targets: K target pairs; initial_target: the first target's desired goal is the
@@ -39,6 +43,9 @@ class IBCTask(NamedTuple):
     pool_move: float
     num_targets: int
     initial_target: bool
+    corridor: tuple[tuple[float, float], ...] = ()
+    corridor_points: int = 0
+    corridor_noise: float = 0.0
 
 
 _FETCH = IBCTask(segment_length=50, proprio_dims=(0, 1, 2), backward_threshold=0.05, backward_noise=0.05,
@@ -48,7 +55,9 @@ _FETCH = IBCTask(segment_length=50, proprio_dims=(0, 1, 2), backward_threshold=0
 IBC_TASKS: dict[str, IBCTask] = {
     "point_umaze": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.6,
                            backward_noise=0.1, curriculum_noise=0.3, curriculum_noise_dims=(0, 1),
-                           pool_move=0.1, num_targets=50, initial_target=False),
+                           pool_move=0.1, num_targets=50, initial_target=False,
+                           corridor=((0.0, 0.0), (8.0, 0.0), (8.0, 8.0), (0.0, 8.0)), corridor_points=30,
+                           corridor_noise=0.1),
     "tabletop": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.2, backward_noise=0.05,
                         curriculum_noise=0.1, curriculum_noise_dims=(2, 3), pool_move=0.01, num_targets=5,
                         initial_target=True),
@@ -73,3 +82,12 @@ def ibc_task(env, segment_length: int | None = None) -> IBCTask:
                          f"{', '.join(IBC_TASKS)}")
     task = IBC_TASKS[env.name]
     return task if segment_length is None else task._replace(segment_length=segment_length)
+
+
+def corridor_points(task: IBCTask) -> np.ndarray:
+    """(corridor_points, 2) evenly spaced by arc length along task.corridor, both ends included."""
+    corners = np.asarray(task.corridor, np.float64)
+    lengths = np.linalg.norm(np.diff(corners, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(lengths)])
+    at = np.linspace(0.0, arc[-1], task.corridor_points)
+    return np.stack([np.interp(at, arc, corners[:, 0]), np.interp(at, arc, corners[:, 1])], -1)
