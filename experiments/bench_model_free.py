@@ -5,8 +5,12 @@
 Rows {"section", "name", "value", "unit", "note"}:
   <task>_<agent>_steps_per_s   env steps/s of the fused chunk (policy, env step, replay insert and one SAC
                                update per step, MEDAL's sizes: batch 256, 2 x 256 heads) of oracle_sac on
-                               every task, r3l and medal on point_umaze and tabletop; 1,000-step chunks,
-                               median of 3 after the compile, with the compile time in the note.
+                               every task, r3l, medal and ibc (3 x 512 heads, batch 512) on point_umaze
+                               and tabletop; 1,000-step chunks, median of 3 after the compile, with the
+                               compile time in the note.
+  ibc_matching_s               one curriculum matching of ibc at its sizes on push (pool 1,000 x 50 steps,
+                               10 actions valued by the 3 x 512 critic, 50 slots), compiled; it runs once
+                               per 20 forward segments.
   sac_update_ms                one SAC update alone (point_umaze shapes: input 12, action 2), 200 updates in
                                one scan, with its FLOP/s (XLA cost analysis) against a 2048^3 matmul peak
                                measured in the same run.
@@ -32,13 +36,16 @@ import jax.numpy as jnp
 import envs_mjx
 from experiments.bench_core import matmul_peak
 from morefree_jax.baselines import sac
+from morefree_jax.baselines.curriculum import Curriculum
+from morefree_jax.baselines.ibc import IBCLearner
+from morefree_jax.baselines.ibc_tasks import ibc_task
 from morefree_jax.config_run import resolve_config
 from morefree_jax.programs import jit_run_fns
 from morefree_jax.run_fns import make_run_fns
 
 SECTION = "model_free"
 BAR_VS_TORCH = 3.0
-R3L_TASKS = MEDAL_TASKS = ("point_umaze", "tabletop")
+R3L_TASKS = MEDAL_TASKS = ("point_umaze", "tabletop")  # medal and ibc run on these too
 
 
 def _row(name, value, unit, note=""):
@@ -90,6 +97,33 @@ def update_rows(obs_size: int = 12, action_size: int = 2, updates: int = 200) ->
     return [_row("sac_update_ms", 1e3 * seconds, "ms", note)], 1e3 * seconds
 
 
+def matching_row(task: str = "push") -> dict:
+    """The time of one ibc curriculum matching on a full pool of random trajectories."""
+    config = resolve_config([f"env={task}", "agent=ibc"], envs_mjx.ALL_ENVS).baseline.ibc
+    env = envs_mjx.make(task)
+    curriculum_task = ibc_task(env)
+    learner = IBCLearner(config, env, curriculum_task)
+    curriculum = Curriculum(env, curriculum_task, config, config.sac.discount)
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    agent, state = learner.init(keys[0]), curriculum.init(keys[1])
+    state = state.replace(pool_goals=jax.random.normal(keys[2], state.pool_goals.shape),
+                          pool_lengths=jnp.full_like(state.pool_lengths, curriculum_task.segment_length),
+                          pool_count=jnp.asarray(config.pool_size, jnp.int32))
+
+    def match(state, agent, key):
+        return curriculum.match(state, lambda o, g, k: learner.forward_value(agent, o, g, k), key)
+
+    compiled = jax.jit(match).lower(state, agent, keys[3]).compile()
+    jax.block_until_ready(compiled(state, agent, keys[3]))
+    start = time.perf_counter()
+    jax.block_until_ready(compiled(state, agent, keys[3]))
+    seconds = time.perf_counter() - start
+    note = (f"{task}: pool {config.pool_size} x {curriculum_task.segment_length} steps, "
+            f"{config.value_samples} actions, {config.slots} slots; "
+            f"once per {config.match_every} forward segments")
+    return _row("ibc_matching_s", seconds, "s", note)
+
+
 def torch_update_ms(obs_size: int = 12, action_size: int = 2) -> dict | None:
     """The PyTorch reference's JSON, or None without $TORCH_PYTHON."""
     python = os.environ.get("TORCH_PYTHON")
@@ -108,12 +142,14 @@ def run(quick: bool = False) -> list[dict]:
                 *update_rows(updates=20)[0]]
     rows, rates = [], {}
     runs = [(task, "oracle_sac") for task in envs_mjx.ALL_ENVS] + [(task, "r3l") for task in R3L_TASKS]
-    runs += [(task, "medal") for task in MEDAL_TASKS]
+    runs += [(task, agent) for agent in ("medal", "ibc") for task in MEDAL_TASKS]
     for task, agent in runs:
         rates[task, agent], compile_s = chunk_rate(task, agent, 1000)
         rows.append(_row(f"{task}_{agent}_steps_per_s", rates[task, agent], "steps/s",
                          f"UTD 1, batch 256; compile + first chunk {compile_s:.0f} s"))
         print(rows[-1], file=sys.stderr, flush=True)
+    rows.append(matching_row())
+    print(rows[-1], file=sys.stderr, flush=True)
     update, _ = update_rows()
     rows += update
     reference = torch_update_ms()
