@@ -40,25 +40,6 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
         assert not np.array_equal(np.asarray(first.info["rng"]), np.asarray(second.info["rng"]))
 
 
-def test_vmapped_step_traces_once_over_four_instances(env_name):
-    """One compiled program per task for both: vmap over instances, and no retrace when only the action
-    values change (a weakly typed action must not change the state's dtypes)."""
-    env = cached_env(env_name)
-    # chex keys its counter on the definition site, which every parametrization of this test shares.
-    chex.clear_trace_counter()
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def step(states, actions):
-        return jax.vmap(env.step)(states, actions)
-
-    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(3), 4))
-    for i in range(3):
-        states = step(states, jnp.full((4, env.action_size), 0.1 * i))
-    assert states.obs.shape == (4, env.observation_size)
-    assert bool(jnp.all(jnp.isfinite(states.obs)))
-
-
 def test_reset_free_extension(env_name):
     env = cached_env(env_name)
     key_goal, key_init = jax.random.split(jax.random.PRNGKey(4))
@@ -82,14 +63,23 @@ def test_reset_free_extension(env_name):
     assert bool(env.task_relevant(state.obs))
 
 
-def test_brax_training_wrappers_run(env_name):
+def test_brax_training_wrappers_vmap_and_step_without_retracing(env_name):
+    """brax's training wrappers (vmap over instances, episodes of 5, auto-reset) in one compiled step per
+    task, which must not retrace when only the action values change (a weakly typed action must not
+    change the state's dtypes)."""
     env = training.wrap(cached_env(env_name), episode_length=5)
-    keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    state = jax.jit(env.reset)(keys)
-    step = jax.jit(env.step)
-    for _ in range(6):  # crosses the episode end, so AutoResetWrapper resets once
-        state = step(state, jnp.zeros((2, env.action_size)))
-    assert state.obs.shape == (2, env.observation_size)
+    # chex keys its counter on the definition site, which every parametrization of this test shares.
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def step(state, action):
+        return env.step(state, action)
+
+    state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(3), 4))
+    for i in range(6):  # crosses the episode end, so AutoResetWrapper resets once
+        state = step(state, jnp.full((4, env.action_size), 0.1 * i))
+    assert state.obs.shape == (4, env.observation_size)
     assert bool(jnp.all(jnp.isfinite(state.obs)))
 
 
