@@ -179,17 +179,20 @@ class Curriculum:
 
     def pool_values(self, state: CurriculumState, value_fn, key) -> jax.Array:
         """V (P, L): value_fn(first state, goal = ag_t) per pool step, one trajectory at a time (bounded
-        memory), clipped to [-1/(1-discount), 0]."""
+        memory), clipped to [-1/(1-discount), 0]. Rows not yet filled are 0 without running the critic
+        (their cost is NO_MATCH anyway): a pool of 1,000 fills only after 1,000 forward segments."""
         template = jnp.zeros(self.env.observation_size)
 
         def one(args):
-            goals, first, key_one = args
+            goals, first, key_one, filled = args
             goal_obs = jax.vmap(lambda g: template.at[self.goal_dims].set(g))(goals)
             firsts = jnp.broadcast_to(first, goal_obs.shape)
-            return value_fn(firsts, goal_obs, key_one)
+            return lazy_cond(filled, lambda: value_fn(firsts, goal_obs, key_one),
+                             lambda: jnp.zeros(goals.shape[0]))
 
         keys = jax.random.split(key, self.config.pool_size)
-        values = jax.lax.map(one, (state.pool_goals, state.pool_first, keys))
+        filled = jnp.arange(self.config.pool_size) < state.pool_count
+        values = jax.lax.map(one, (state.pool_goals, state.pool_first, keys, filled))
         return jnp.clip(values, -1.0 / (1.0 - self.discount), 0.0)
 
     def match(self, state: CurriculumState, value_fn, key) -> CurriculumState:
