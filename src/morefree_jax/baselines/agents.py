@@ -174,9 +174,8 @@ class R3L:
 def make_model_free_agent(name: str, config: ModelFreeConfig, env):
     from morefree_jax.baselines import demos, medal  # here: medal builds on this module
 
-    agents = {"oracle_sac": OracleSAC, "r3l": R3L}
-    if name == "medal":
-        return medal.MEDAL(config, env, demos.load_demos(env.name, env))
+    agents = {"oracle_sac": OracleSAC, "r3l": R3L,
+              "medal": lambda config, env: medal.MEDAL(config, env, demos.load_demos(env.name, env))}
     if name not in agents:
-        raise ValueError(f"unknown model-free agent {name!r}; valid: {', '.join([*agents, 'medal'])}")
+        raise ValueError(f"unknown model-free agent {name!r}; valid: {', '.join(agents)}")
     return agents[name](config, env)
