@@ -1,11 +1,14 @@
 """MEDAL: its demonstrations in the buffers, the discriminator's reward, the stream it steers (the task goal
 kept across backward segments, goal-distribution backward goals, the policy acting in the seed phase), a
-whole 2-chunk run and exact resume. The shared model-free machinery is tested in test_model_free.py."""
+whole run and exact resume after SIGKILL. The shared model-free machinery is tested in test_model_free.py."""
 
 from __future__ import annotations
 
 import functools
 import json
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +25,8 @@ from morefree_jax.baselines.medal import MEDAL
 from morefree_jax.checkpoint import latest_valid
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
-from tests.test_model_free import CHUNK, PREFILL, SWITCH, mf_config
+from tests.loop_helpers import COMPILATION_CACHE, debug_args, sigkill_once_written
+from tests.test_model_free import CHUNK, MF_ARGS, PREFILL, REPO, SWITCH, mf_config
 
 ENV = "tabletop"  # loop_helpers.RUN_ENV: the fast-compiling kinematic step
 
@@ -128,25 +132,42 @@ def test_seed_phase_acts_with_the_policy_and_steers_medal_goals():
     assert not np.allclose(backward_goals[0], initial_state)  # a goal-distribution draw, unlike r3l's
 
 
-def test_two_chunk_medal_run_writes_every_file_and_resumes_exactly(tmp_path):
-    steps = PREFILL + 2 * CHUNK
-    config = lambda d, n: mf_config("medal", f"run_dir={d}", f"steps={n}")  # noqa: E731
-    loop.train(config(tmp_path / "full", steps), programs=medal_programs(), progress="off")
-    run_dir = tmp_path / "full"
-    records = read_metrics(run_dir / "metrics.jsonl")
-    last = [r for r in records if "train/updates" in r][-1]
-    assert last["train/updates"] == 2 * CHUNK
-    assert "medal/discriminator_loss" in last and last["medal/discriminator_loss"] > 0
-    assert any("eval/success" in r for r in records) and list((run_dir / "tb").iterdir())
-    assert str(steps) in {p.name for p in (run_dir / "checkpoints").iterdir()}
-    # Stopped after one chunk, then continued to two: the same state, bit for bit.
-    loop.train(config(tmp_path / "split", PREFILL + CHUNK), programs=medal_programs(), progress="off")
-    loop.train(config(tmp_path / "split", steps), programs=medal_programs(), progress="off")
+def _final_state(run_dir):
     template = seed_slice(medal_programs().init(jax.random.PRNGKey(0)[None]), 0)
-    states = [latest_valid(d, template, json.loads((d / "config.json").read_text())).state
-              for d in (tmp_path / "full", tmp_path / "split")]
-    pairs = zip(*(jax.tree.leaves(s) for s in states), strict=True)
-    assert all(np.asarray(a).tobytes() == np.asarray(b).tobytes() for a, b in pairs)
+    restored = latest_valid(run_dir, template, json.loads((run_dir / "config.json").read_text()))
+    return restored.step, restored.state
+
+
+def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_path):
+    full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
+    three = PREFILL + 3 * CHUNK
+    config = lambda d, n: mf_config("medal", f"run_dir={d}", f"steps={n}")  # noqa: E731
+    loop.train(config(full_dir, three), programs=medal_programs(), progress="off")
+    records = read_metrics(full_dir / "metrics.jsonl")
+    last = [r for r in records if "train/updates" in r][-1]
+    assert last["train/updates"] == 3 * CHUNK
+    assert "medal/discriminator_loss" in last and last["medal/discriminator_loss"] > 0
+    assert any("eval/success" in r for r in records) and list((full_dir / "tb").iterdir())
+    assert str(three) in {p.name for p in (full_dir / "checkpoints").iterdir()}
+    # A CLI run that would go on for 40 chunks is SIGKILLed once its checkpoint after chunk 1 is complete,
+    # then resumed to three chunks: the same state and metrics, bit for bit.
+    env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
+           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    command = [sys.executable, "-m", "experiments.train", *debug_args("agent=medal", *MF_ARGS),
+               f"steps={PREFILL + 40 * CHUNK}", f"run_dir={killed_dir}"]
+    process = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    sigkill_once_written(process, killed_dir / "checkpoints" / str(PREFILL + CHUNK) / "files.json")
+    done = max(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
+    assert done < three, f"killed too late: step {done}"
+    loop.train(config(killed_dir, three), programs=medal_programs(), progress="off")
+    (step_a, state_a), (step_b, state_b) = _final_state(full_dir), _final_state(killed_dir)
+    assert step_a == step_b == three
+    pairs = zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True)
+    unequal = [i for i, (a, b) in enumerate(pairs) if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
+    assert not unequal, f"{len(unequal)} state arrays differ"
+    strip = lambda d: [{k: v for k, v in r.items() if not k.startswith("time/")}  # noqa: E731
+                       for r in read_metrics(d / "metrics.jsonl")]
+    assert strip(full_dir) == strip(killed_dir)
 
 
 def test_medal_without_demonstrations_is_one_line(capsys):
