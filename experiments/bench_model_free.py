@@ -52,8 +52,8 @@ def _row(name, value, unit, note=""):
     return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
 
 
-def chunk_rate(task: str, agent: str, chunk: int, reps: int = 3) -> tuple[float, float]:
-    """(env steps/s of the fused chunk, compile + first call seconds)."""
+def chunk_rate(task: str, agent: str, chunk: int, reps: int = 3) -> tuple[float, float, str]:
+    """(env steps/s of the fused chunk, compile + first call seconds, the learner's sizes)."""
     config = resolve_config([f"env={task}", f"agent={agent}", "prefill=300", f"baseline.chunk_len={chunk}",
                              "baseline.replay_capacity=100000"], envs_mjx.ALL_ENVS)
     fns = jit_run_fns(make_run_fns(config, envs_mjx.make(task)))
@@ -66,7 +66,9 @@ def chunk_rate(task: str, agent: str, chunk: int, reps: int = 3) -> tuple[float,
         start = time.perf_counter()
         state, _ = jax.block_until_ready(fns.collect(state))
         times.append(time.perf_counter() - start)
-    return chunk / sorted(times)[len(times) // 2], compile_s
+    learner = config.baseline.ibc.sac if agent == "ibc" else config.baseline.sac
+    sizes = f"batch {learner.batch_size}, {learner.hidden_depth} x {learner.hidden_dim} heads"
+    return chunk / sorted(times)[len(times) // 2], compile_s, sizes
 
 
 def update_rows(obs_size: int = 12, action_size: int = 2, updates: int = 200) -> tuple[list[dict], float]:
@@ -137,16 +139,16 @@ def torch_update_ms(obs_size: int = 12, action_size: int = 2) -> dict | None:
 
 def run(quick: bool = False) -> list[dict]:
     if quick:
-        rate, compile_s = chunk_rate("tabletop", "oracle_sac", 100, reps=1)
+        rate, compile_s, _ = chunk_rate("tabletop", "oracle_sac", 100, reps=1)
         return [_row("tabletop_oracle_sac_steps_per_s", rate, "steps/s", f"compile {compile_s:.0f} s"),
                 *update_rows(updates=20)[0]]
     rows, rates = [], {}
     runs = [(task, "oracle_sac") for task in envs_mjx.ALL_ENVS] + [(task, "r3l") for task in R3L_TASKS]
     runs += [(task, agent) for agent in ("medal", "ibc") for task in MEDAL_TASKS]
     for task, agent in runs:
-        rates[task, agent], compile_s = chunk_rate(task, agent, 1000)
+        rates[task, agent], compile_s, sizes = chunk_rate(task, agent, 1000)
         rows.append(_row(f"{task}_{agent}_steps_per_s", rates[task, agent], "steps/s",
-                         f"UTD 1, batch 256; compile + first chunk {compile_s:.0f} s"))
+                         f"UTD 1, {sizes}; compile + first chunk {compile_s:.0f} s"))
         print(rows[-1], file=sys.stderr, flush=True)
     rows.append(matching_row())
     print(rows[-1], file=sys.stderr, flush=True)
