@@ -13,6 +13,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import envs_mjx
 from morefree_jax import loop
@@ -170,9 +171,18 @@ def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_p
     assert strip(full_dir) == strip(killed_dir)
 
 
-def test_medal_without_demonstrations_is_one_line(capsys):
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["env=ant"], "there are no demonstrations for ant (no MEDAL on Ant); tasks with demonstrations: "),
+    (["env=tabletop", "baseline.discriminator.batch=7"],
+     "baseline.discriminator.batch=7: batch must be even"),
+    (["env=tabletop", "baseline.discriminator.train_every=0"],
+     "baseline.discriminator.train_every=0: train_every must be > 0, got 0"),
+    (["env=tabletop", "baseline.discriminator.mixup=maybe"],
+     "baseline.discriminator.mixup expects bool, got 'maybe'"),
+])
+def test_bad_medal_input_is_one_line(arguments, message, capsys):
     from experiments import train as train_cli
 
-    assert train_cli.main(["env=ant", "agent=medal", "preset=debug"]) == 2
+    assert train_cli.main(["agent=medal", "preset=debug", *arguments]) == 2
     err = capsys.readouterr().err.strip()
-    assert "ant" in err and len(err.splitlines()) == 1
+    assert message in err and len(err.splitlines()) == 1, err
