@@ -1,4 +1,5 @@
-"""Back-trajectory starts: the 100 locations before each successful back chunk, kept in a device ring."""
+"""Back-trajectory starts: the 100 locations before each successful back chunk, kept in a device ring and
+saved by a run as plots/back_starts.npz."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import envs_mjx
+from morefree_jax import loop
 from morefree_jax.back_starts import (
     BACK_START_SLOTS,
     BACK_START_STEPS,
@@ -14,8 +17,11 @@ from morefree_jax.back_starts import (
     stored_back_starts,
 )
 from morefree_jax.config import ReplayConfig
-from morefree_jax.logger import RunLogger
+from morefree_jax.logger import RunLogger, read_metrics
+from morefree_jax.programs import compile_programs
 from morefree_jax.replay import add, init_replay
+from morefree_jax.run_fns import make_run_fns
+from tests.loop_helpers import CHUNK, debug_config
 
 
 class _Task:
@@ -78,3 +84,28 @@ def test_the_logger_writes_them_atomically(tmp_path):
     with np.load(tmp_path / "plots" / "back_starts.npz") as data:
         assert data["xy"].shape == (1, BACK_START_STEPS, 2) and data["stream_step"].tolist() == [200]
         assert int(data["step"]) == 500
+
+
+class _EveryGoalReachedTabletop(envs_mjx.env_class("tabletop")):
+    """Tabletop on which every go phase reaches its goal, so that every back chunk is a successful one."""
+
+    def __init__(self):
+        super().__init__(success_threshold=1e3)
+
+
+def test_a_debug_run_saves_the_starts_of_every_successful_back_chunk(tmp_path):
+    # mf_task_only (alpha 1) alternates forth and back chunks: chunks 2 and 4 of four are back chunks.
+    chunks, steps = 4, 20 + 4 * CHUNK  # after the debug prefill of 20 steps
+    # The run saves them at each evaluation: one, at the end.
+    config = debug_config("mf_task_only", f"run_dir={tmp_path}", f"steps={steps}", f"eval_every={steps}",
+                          "checkpoint_every=10000")
+    programs = compile_programs(make_run_fns(config, _EveryGoalReachedTabletop()), 1)
+    loop.train(config, programs=programs, progress="off")
+    saved = np.load(tmp_path / "plots" / "back_starts.npz")
+    assert saved["xy"].shape == (chunks // 2, BACK_START_STEPS, 2)
+    # Each back chunk starts where its forth chunk ended: stream steps prefill + CHUNK and + 3 CHUNK.
+    assert saved["stream_step"].tolist() == [20 + CHUNK, 20 + 3 * CHUNK]
+    assert int(saved["step"]) == steps
+    assert np.isfinite(saved["xy"]).all()  # 100 stream steps precede each, none before the stream start
+    records = [r for r in read_metrics(tmp_path / "metrics.jsonl") if "go/reach_rate_initial" in r]
+    assert records[-1]["go/reach_rate_initial"] == 1.0
