@@ -15,12 +15,15 @@ RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
 # jemalloc preloaded where installed (libjemalloc2): ~15% faster learner steps (see morefree_jax/runtime.py).
 ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocator_env()" 2>/dev/null)
 
-# make experiment: TASK (default ENV), AGENTS, SEEDS (default 0,1,2). make plots: RUNS, OUT, TASK (default all).
+# make experiment: TASK (default ENV), AGENTS, SEEDS (default 0,1,2). make plots: RUNS, OUT, TASK (default all),
+# MARKS (steps of the results table, e.g. 20000,100000), WINDOW (e.g. 75000:100000: the window table).
 TASK ?=
 AGENTS ?= morefree,rf_peg
 DEFAULT_SEEDS := 0,1,2
 RUNS ?= runs
 OUT ?= results
+MARKS ?=
+WINDOW ?=
 
 .PHONY: install test test-slow lint bench clean train evaluate experiment plots demos
 
@@ -58,7 +61,8 @@ experiment:
 
 # Figures (PNG, SVG) and results tables of every run dir below RUNS, written to OUT.
 plots:
-	PYTHONPATH=src:. $(PY) -m experiments.plots $(RUNS) --out $(OUT) $(if $(TASK),--task $(TASK))
+	PYTHONPATH=src:. $(PY) -m experiments.plots $(RUNS) --out $(OUT) $(if $(TASK),--task $(TASK)) \
+		$(if $(MARKS),--marks $(MARKS)) $(if $(WINDOW),--window $(WINDOW))
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)

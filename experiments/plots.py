@@ -1,6 +1,7 @@
 """The paper's figures and a results table from run directories (`make plots RUNS=runs OUT=results`).
 
     python -m experiments.plots runs [--out results] [--task point_umaze] [--marks 25000,50000,100000]
+                                     [--window 75000:100000]
 
 Reads every run dir below the given directory (config.json + metrics.jsonl), groups them by task and agent,
 and writes to --out, per task (PNG and SVG):
@@ -15,6 +16,8 @@ and writes to --out, per task (PNG and SVG):
                            how long the agent / object rested there (agents with Back-and-Forth Go-Explore)
 and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps) per task and
 agent, mean +- standard error over seeds, seed count, and the commits of the code that wrote the runs.
+With --window START:STOP also <task>_window.csv / .md: each seed's mean success over its evaluations in
+that range, mean +- standard error over seeds (agents whose every seed has evaluated at STOP).
 Every file is stamped with those commits and the commit that drew it. A run dir that cannot be used is
 skipped with one line saying why; finding no run is a one-line error (exit 2).
 """
@@ -188,17 +191,37 @@ def write_table(task, groups, out, marks, stamp_for) -> list[pathlib.Path]:
     return paths
 
 
+def write_window(task, groups, out, window, stamp_for) -> list[pathlib.Path]:
+    """<task>_window.csv and .md: mean success over the evaluations in the window (run_groups.window_rows)."""
+    task_groups = {key: group for key, group in groups.items() if key[0] == task}
+    rows = run_groups.window_rows(task_groups, *window)
+    commits = sorted({c for group in task_groups.values() for r in group for c in r.commits})
+    paths = [out / f"{task}_window.csv", out / f"{task}_window.md"]
+    paths[0].write_text(run_groups.csv_text(rows, run_groups.WINDOW_COLUMNS))
+    paths[1].write_text(run_groups.window_markdown(rows) + f"\n{stamp_for(commits)}\n")
+    return paths
+
+
 def _parse(argv):
     parser = argparse.ArgumentParser(prog="python -m experiments.plots", description=__doc__.splitlines()[0])
     parser.add_argument("runs", help="directory searched for run dirs (e.g. runs)")
     parser.add_argument("--out", default="results", help="where figures and tables go (default: results)")
     parser.add_argument("--task", default=None, help="only this task")
     parser.add_argument("--marks", default="", help="comma-separated env steps of the results table")
+    parser.add_argument("--window", default="", help="START:STOP env steps of the window table")
     args = parser.parse_args(argv)
     try:
         args.marks = [int(m) for m in args.marks.split(",") if m.strip()]
     except ValueError:
         parser.error(f"--marks must be comma-separated integers, got {args.marks!r}")
+    if args.window:
+        try:
+            start, stop = (int(part) for part in args.window.split(":"))
+        except ValueError:
+            parser.error(f"--window must be START:STOP env steps, e.g. 75000:100000, got {args.window!r}")
+        if not 0 <= start <= stop:
+            parser.error(f"--window needs 0 <= START <= STOP, got {args.window!r}")
+        args.window = (start, stop)
     return args
 
 
@@ -221,6 +244,8 @@ def main(argv: list[str]) -> int:
     for task in tasks:
         written += write_task(task, groups, out, stamp_for)
         written += write_table(task, groups, out, args.marks, stamp_for)
+        if args.window:
+            written += write_window(task, groups, out, args.window, stamp_for)
     for (task, agent), group in sorted(groups.items()):
         print(f"{task} {agent}: seeds {','.join(str(r.seed) for r in group)}")
     print(f"wrote {len(written)} files to {out}")

@@ -165,6 +165,29 @@ def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
     return rows
 
 
+WINDOW_COLUMNS = ("task", "agent", "seeds", "start", "stop", "evaluations", "success_mean", "success_stderr",
+                  "final_success_mean", "final_success_stderr", "commits")
+
+
+def window_rows(groups, start: int, stop: int) -> list[dict]:
+    """One row per (task, agent) whose every seed has evaluated at `stop`: each seed's mean success over its
+    evaluations in [start, stop], then mean and standard error of those over seeds. Success at a single
+    evaluation swings between 0 and 1 in reset-free runs; a window says what the agent holds."""
+    rows = []
+    for (task, agent), group in sorted(groups.items()):
+        series = [run.evaluations("eval/success") for run in group]
+        if any(stop not in s for s in series):
+            continue
+        steps = sorted(set.intersection(*(set(s) for s in series)) & set(range(start, stop + 1)))
+        finals = [run.evaluations("eval/final_success") for run in group]
+        success = mean_stderr([np.mean([s[step] for step in steps]) for s in series])
+        final = mean_stderr([np.mean([f.get(step, math.nan) for step in steps]) for f in finals])
+        commits = sorted({c for run in group for c in run.commits})
+        rows.append(dict(zip(WINDOW_COLUMNS, (task, agent, len(group), start, stop, len(steps), *success,
+                                              *final, " ".join(commits)), strict=True)))
+    return rows
+
+
 def _with_error(mean: float, stderr: float) -> str:
     return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
 
@@ -180,9 +203,20 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def csv_text(rows: list[dict]) -> str:
+def window_markdown(rows: list[dict]) -> str:
+    lines = ["| task | agent | seeds | env steps | evaluations | mean success | mean final success "
+             "| commits |", "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "
+                     f"{row['start']:,}-{row['stop']:,} | {row['evaluations']} | "
+                     f"{_with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{_with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{row['commits']} |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(rows: list[dict], columns: tuple[str, ...] = RESULT_COLUMNS) -> str:
     def cell(value):
         return f"{value:.4f}" if isinstance(value, float) else str(value)
 
-    return "\n".join([",".join(RESULT_COLUMNS)] + [",".join(cell(row[c]) for c in RESULT_COLUMNS)
-                                                   for row in rows]) + "\n"
+    return "\n".join([",".join(columns)] + [",".join(cell(row[c]) for c in columns) for row in rows]) + "\n"

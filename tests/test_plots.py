@@ -104,3 +104,29 @@ def test_rest_density_counts_nearby_points():
     trajectory[99] = [np.nan, np.nan]
     density = plots.rest_density(trajectory, radius=1.0)
     assert density[0] == pytest.approx(0.5) and density[60] == pytest.approx(0.49) and density[99] == 0.0
+
+
+def test_window_table_averages_each_seed_over_its_evaluations_first(runs, tmp_path):
+    out = tmp_path / "results"
+    assert plots.main([str(runs), "--out", str(out), "--window", "5000:7500"]) == 0
+    with open(out / "point_umaze_window.csv") as file:
+        rows = {r["agent"]: r for r in csv.DictReader(file)}
+    per_seed = [np.mean(SUCCESS["morefree", seed][1:]) for seed in range(3)]  # 0.75, 0.55, 0.5
+    assert rows["morefree"]["evaluations"] == "2" and rows["morefree"]["seeds"] == "3"
+    assert float(rows["morefree"]["success_mean"]) == pytest.approx(np.mean(per_seed), abs=1e-4)
+    assert float(rows["morefree"]["success_stderr"]) == pytest.approx(np.std(per_seed, ddof=1) / math.sqrt(3),
+                                                                      abs=1e-4)
+    assert float(rows["rf_peg"]["final_success_mean"]) == pytest.approx(np.mean([0.075, 0.175]), abs=1e-4)
+    table = (out / "point_umaze_window.md").read_text()
+    assert "| point_umaze | morefree | 3 | 5,000-7,500 | 2 | 0.60 ± 0.08 |" in table
+    # A window past the runs' last evaluation has no rows.
+    assert plots.main([str(runs), "--out", str(out), "--window", "5000:10000"]) == 0
+    assert (out / "point_umaze_window.csv").read_text().count("\n") == 1
+
+
+@pytest.mark.parametrize("window", ["5000", "a:b", "7500:5000"])
+def test_bad_window_is_one_line(runs, tmp_path, window, capsys):
+    with pytest.raises(SystemExit) as exited:
+        plots.main([str(runs), "--out", str(tmp_path / "out"), "--window", window])
+    assert exited.value.code == 2
+    assert "--window" in capsys.readouterr().err.splitlines()[-1]
