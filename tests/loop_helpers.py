@@ -1,5 +1,5 @@
 """Shared pieces of the run tests: tiny debug runs (compiled programs shared per variant and seed count)
-and the host-callback detectors."""
+the host-callback detectors, and the comparisons of exact resume."""
 
 from __future__ import annotations
 
@@ -13,9 +13,11 @@ import tempfile
 import time
 
 import jax
+import numpy as np
 
 import envs_mjx
 from morefree_jax.config_run import resolve_config
+from morefree_jax.logger import read_metrics
 
 # A persistent compilation cache for the CLI subprocesses of test_loop: the first compiles, the later ones
 # load its executables. The test process itself does not use it (conftest turns it off): since PointUMaze
@@ -98,3 +100,23 @@ def sigkill_once_written(process: subprocess.Popen, path, timeout_s: float = 600
     assert process.poll() is None, process.stderr.read().decode()[-2000:]
     process.send_signal(signal.SIGKILL)
     process.wait()
+
+
+def unequal_leaves(a, b) -> list[str]:
+    """Paths of the state arrays of `a` and `b` (same structure) whose bytes differ."""
+    paths = [jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(a)[0]]
+    return [path for path, x, y in zip(paths, jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+            if np.asarray(x).tobytes() != np.asarray(y).tobytes()]
+
+
+def records_without_time(run_dir) -> list[dict]:
+    """metrics.jsonl without its wall-clock entries: what an exact resume must reproduce."""
+    return [{k: v for k, v in r.items() if not k.startswith("time/")}
+            for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
+
+
+def assert_same_run(dir_a, state_a, dir_b, state_b) -> None:
+    """Two runs ended in bit-identical states and wrote the same metrics."""
+    unequal = unequal_leaves(state_a, state_b)
+    assert not unequal, f"{len(unequal)} state arrays differ: {unequal[:5]}"
+    assert records_without_time(dir_a) == records_without_time(dir_b)

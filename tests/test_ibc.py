@@ -32,7 +32,13 @@ from morefree_jax.checkpoint import latest_valid
 from morefree_jax.config_run import resolve_config
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
-from tests.loop_helpers import COMPILATION_CACHE, callback_primitives, debug_args, sigkill_once_written
+from tests.loop_helpers import (
+    COMPILATION_CACHE,
+    assert_same_run,
+    callback_primitives,
+    debug_args,
+    sigkill_once_written,
+)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL, CHUNK, SEGMENT = 100, 50, 10
@@ -295,12 +301,7 @@ def test_resume_after_sigkill_is_bit_exact(tmp_path):
         (step_a, state_a), (step_b, state_b) = _final_state(a_dir), _final_state(b_dir)
         assert step_a == step_b == three
         assert int(state_a.curriculum.matches) >= 2  # the matching ran, and resumed alike
-        pairs = zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True)
-        unequal = [i for i, (a, b) in enumerate(pairs) if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
-        assert not unequal, f"seed {seed}: {len(unequal)} state arrays differ"
-        strip = lambda d: [{k: v for k, v in r.items() if not k.startswith("time/")}  # noqa: E731
-                           for r in read_metrics(d / "metrics.jsonl")]
-        assert strip(a_dir) == strip(b_dir)
+        assert_same_run(a_dir, state_a, b_dir, state_b)
 
 
 @pytest.mark.parametrize(("arguments", "message"), [

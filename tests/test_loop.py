@@ -35,9 +35,11 @@ from morefree_jax.variants import VARIANTS
 from tests.loop_helpers import (
     CHUNK,
     COMPILATION_CACHE,
+    assert_same_run,
     debug_args,
     debug_config,
     debug_programs,
+    records_without_time,
     sigkill_once_written,
 )
 
@@ -59,11 +61,6 @@ def final_state(agent: str, run_dir):
     config_dict = json.loads((pathlib.Path(run_dir) / "config.json").read_text())
     restored = latest_valid(run_dir, seed_slice(template, 0), config_dict)
     return restored.step, restored.state
-
-
-def records_without_time(run_dir) -> list[dict]:
-    return [{k: v for k, v in r.items() if not k.startswith("time/")}
-            for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
 
 
 # Whole runs (~55 s of compiles each) of morefree and rf_peg stay in the fast suite; the others are in the
@@ -148,12 +145,7 @@ def test_resume_after_sigkill_continues_bit_for_bit(tmp_path, capsys):
     step_a, state_a = final_state("morefree", full_dir)
     step_b, state_b = final_state("morefree", killed_dir)
     assert step_a == step_b == THREE_CHUNKS
-    leaves_a, leaves_b = jax.tree.leaves(state_a), jax.tree.leaves(state_b)
-    assert len(leaves_a) == len(leaves_b)
-    unequal = [i for i, (a, b) in enumerate(zip(leaves_a, leaves_b, strict=True))
-               if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
-    assert not unequal, f"{len(unequal)} of {len(leaves_a)} state arrays differ"
-    assert records_without_time(full_dir) == records_without_time(killed_dir)
+    assert_same_run(full_dir, state_a, killed_dir, state_b)
 
 
 def test_a_moved_run_dir_resumes_bit_for_bit(tmp_path):

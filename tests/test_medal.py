@@ -26,7 +26,7 @@ from morefree_jax.baselines.medal import MEDAL
 from morefree_jax.checkpoint import latest_valid
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
-from tests.loop_helpers import COMPILATION_CACHE, debug_args, sigkill_once_written
+from tests.loop_helpers import COMPILATION_CACHE, assert_same_run, debug_args, sigkill_once_written
 from tests.test_model_free import CHUNK, MF_ARGS, PREFILL, REPO, SWITCH, mf_config
 
 ENV = "tabletop"  # loop_helpers.RUN_ENV: the fast-compiling kinematic step
@@ -163,12 +163,7 @@ def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_p
     loop.train(config(killed_dir, three), programs=medal_programs(), progress="off")
     (step_a, state_a), (step_b, state_b) = _final_state(full_dir), _final_state(killed_dir)
     assert step_a == step_b == three
-    pairs = zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True)
-    unequal = [i for i, (a, b) in enumerate(pairs) if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
-    assert not unequal, f"{len(unequal)} state arrays differ"
-    strip = lambda d: [{k: v for k, v in r.items() if not k.startswith("time/")}  # noqa: E731
-                       for r in read_metrics(d / "metrics.jsonl")]
-    assert strip(full_dir) == strip(killed_dir)
+    assert_same_run(full_dir, state_a, killed_dir, state_b)
 
 
 @pytest.mark.parametrize(("arguments", "message"), [

@@ -28,6 +28,7 @@ from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
 from tests.loop_helpers import (
     COMPILATION_CACHE,
+    assert_same_run,
     callback_primitives,
     debug_args,
     sigkill_once_written,
@@ -229,12 +230,7 @@ def test_r3l_resume_after_sigkill_is_bit_exact(tmp_path):
     full_dir, killed_dir = seed_dir("r3l", full_dir, 1), seed_dir("r3l", killed_dir, 1)
     (step_a, state_a), (step_b, state_b) = _final_state("r3l", full_dir), _final_state("r3l", killed_dir)
     assert step_a == step_b == three
-    pairs = zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True)
-    unequal = [i for i, (a, b) in enumerate(pairs) if np.asarray(a).tobytes() != np.asarray(b).tobytes()]
-    assert not unequal, f"{len(unequal)} state arrays differ"
-    strip = lambda d: [{k: v for k, v in r.items() if not k.startswith("time/")}  # noqa: E731
-                       for r in read_metrics(d / "metrics.jsonl")]
-    assert strip(full_dir) == strip(killed_dir)
+    assert_same_run(full_dir, state_a, killed_dir, state_b)
 
 
 @pytest.mark.parametrize(("arguments", "message"), [

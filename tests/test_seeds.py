@@ -33,10 +33,13 @@ from morefree_jax.seeds import parse_seeds
 from tests.loop_helpers import (
     CHUNK,
     COMPILATION_CACHE,
+    assert_same_run,
     debug_args,
     debug_config,
     debug_programs,
+    records_without_time,
     sigkill_once_written,
+    unequal_leaves,
 )
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -67,15 +70,6 @@ def _template():
     return seed_slice(debug_programs("morefree").init(jax.random.PRNGKey(0)[None]), 0)
 
 
-def _unequal_leaves(a, b) -> list[str]:
-    paths = [jax.tree_util.keystr(path) for path, _ in jax.tree_util.tree_flatten_with_path(a)[0]]
-    return [path for path, x, y in zip(paths, jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
-            if np.asarray(x).tobytes() != np.asarray(y).tobytes()]
-
-
-def _records(run_dir) -> list[dict]:
-    return [{k: v for k, v in r.items() if not k.startswith("time/")}
-            for r in read_metrics(pathlib.Path(run_dir) / "metrics.jsonl")]
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +91,7 @@ def test_each_seed_writes_its_own_run_dir(two_seed_run):
         assert any("eval/success" in r for r in records) and list((seed_dir / "tb").iterdir())
         assert sorted(int(p.name) for p in (seed_dir / "checkpoints").iterdir() if p.name.isdigit()) == [
             PREFILL + 2 * CHUNK, THREE_CHUNKS]
-    assert _records(two_seed_run / "seed0") != _records(two_seed_run / "seed1")
+    assert records_without_time(two_seed_run / "seed0") != records_without_time(two_seed_run / "seed1")
 
 
 def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
@@ -107,8 +101,8 @@ def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
     step_group, state_group = _checkpoint(two_seed_run / "seed1", _template())
     step_single, state_single = _checkpoint(tmp_path, _template())
     assert step_group == step_single == THREE_CHUNKS
-    assert not _unequal_leaves(state_group, state_single)  # bit-equal: seed_axis "map" on CPU
-    assert _records(two_seed_run / "seed1") == _records(tmp_path)
+    assert not unequal_leaves(state_group, state_single)  # bit-equal: seed_axis "map" on CPU
+    assert records_without_time(two_seed_run / "seed1") == records_without_time(tmp_path)
 
 
 def test_sigkill_during_a_two_seed_run_resumes_bit_exact_for_both(two_seed_run, tmp_path):
@@ -123,8 +117,7 @@ def test_sigkill_during_a_two_seed_run_resumes_bit_exact_for_both(two_seed_run, 
         step_a, state_a = _checkpoint(two_seed_run / f"seed{seed}", _template())
         step_b, state_b = _checkpoint(tmp_path / f"seed{seed}", _template())
         assert step_a == step_b == THREE_CHUNKS
-        assert not _unequal_leaves(state_a, state_b), f"seed {seed}"
-        assert _records(two_seed_run / f"seed{seed}") == _records(tmp_path / f"seed{seed}")
+        assert_same_run(two_seed_run / f"seed{seed}", state_a, tmp_path / f"seed{seed}", state_b)
 
 
 def _first_updates(programs, seeds):
