@@ -1,7 +1,7 @@
 """The paper's figures and a results table from run directories (`make plots RUNS=runs OUT=results`).
 
     python -m experiments.plots runs [--out results] [--task point_umaze] [--marks 25000,50000,100000]
-                                     [--window 75000:100000]
+                                     [--window 75000:100000] [--visitation-step 100000]
 
 Reads every run dir below the given directory (config.json + metrics.jsonl), groups them by task and agent,
 and writes to --out, per task (PNG and SVG):
@@ -9,9 +9,10 @@ and writes to --out, per task (PNG and SVG):
                            standard-error band, seed count in the legend (the paper's protocol)
   <task>_final_success     the same for success at the episode's last step
   <task>_task_relevant     share of the replay near an initial state or an evaluation goal
-  <task>_visitation        the replay's xy visitation histogram per agent at the latest step every run has,
-                           summed over seeds; task-relevant share in the title; start (o) and goal (*)
-                           regions marked; the maze walls for PointUMaze
+  <task>_visitation        the replay's xy visitation histogram per agent at the latest step all its seeds
+                           have saved (--visitation-step N: at or below N, to compare agents at one step),
+                           summed over seeds; step and task-relevant share in the title; start (o) and goal
+                           (*) regions marked; the maze walls for PointUMaze
   <task>_back_starts       where successful "back" chunks started: the 100 locations before each, shaded by
                            how long the agent / object rested there (agents with Back-and-Forth Go-Explore)
 and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps) per task and
@@ -109,24 +110,33 @@ def _panels(count):
     return fig, [fig.add_subplot(1, count, i + 1) for i in range(count)]
 
 
-def visitation_figure(task, groups, geometry: TaskGeometry):
-    """Per agent: the xy histogram summed over seeds at the latest step every run of the task has saved."""
-    agents = [(agent, group) for (t, agent), group in sorted(groups.items()) if t == task]
-    common = [set.intersection(*({int(p.stem.split("_")[1]) for p in (r.run_dir / "plots").glob(
-        "visitation_*.npy")} for r in group)) for _, group in agents]
-    step = max(set.intersection(*common), default=None)
-    if step is None:
-        return None, None
-    fig, axes = _panels(len(agents))
-    for ax, (agent, group) in zip(axes, agents, strict=True):
+def _saved_visitation_steps(run) -> set[int]:
+    return {int(p.stem.split("_")[1]) for p in (run.run_dir / "plots").glob("visitation_*.npy")}
+
+
+def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = None):
+    """Per agent: the xy histogram summed over seeds at the latest step all its seeds have saved (at or
+    below `cap` when given, to compare agents at one step); the step is in each panel's title. Agents
+    that ran for different lengths each show their latest. (figure, {agent: step}); (None, {}) if none."""
+    steps = {}
+    for (t, agent), group in sorted(groups.items()):
+        common = set.intersection(*(_saved_visitation_steps(r) for r in group)) if t == task else set()
+        eligible = [step for step in common if cap is None or step <= cap]
+        if eligible:
+            steps[agent] = max(eligible)
+    if not steps:
+        return None, {}
+    fig, axes = _panels(len(steps))
+    for ax, (agent, step) in zip(axes, steps.items(), strict=True):
+        group = groups[task, agent]
         histogram = sum(np.load(r.run_dir / "plots" / f"visitation_{step:09d}.npy") for r in group)
-        share = np.mean([r.steps[step].get("visitation/task_relevant", np.nan) for r in group])
+        share = np.mean([r.steps.get(step, {}).get("visitation/task_relevant", np.nan) for r in group])
         ax.imshow(np.log1p(histogram.T), origin="lower", extent=geometry.extent, cmap="viridis")
         geometry.draw(ax)
         seeds = f"{len(group)} seed{'s' * (len(group) > 1)}"
         ax.set_title(f"{agent}: task-relevant {100 * share:.1f}%\n({seeds}, step {step:,})", fontsize=9)
     axes[0].legend(loc="lower right", fontsize=7)
-    return fig, step
+    return fig, steps
 
 
 def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
@@ -164,14 +174,14 @@ def back_starts_figure(task, groups, geometry: TaskGeometry):
     return fig
 
 
-def write_task(task, groups, out, stamp_for) -> list[pathlib.Path]:
+def write_task(task, groups, out, stamp_for, visitation_cap: int | None = None) -> list[pathlib.Path]:
     written = []
     commits = sorted({c for (t, _), g in groups.items() if t == task for r in g for c in r.commits})
     stamp = stamp_for(commits)
     for name, key, label in CURVES:
         written += save(curve_figure(task, groups, key, label), out, f"{task}_{name}", stamp)
     geometry = TaskGeometry(task)
-    fig, _ = visitation_figure(task, groups, geometry)
+    fig, _ = visitation_figure(task, groups, geometry, visitation_cap)
     if fig is not None:
         written += save(fig, out, f"{task}_visitation", stamp)
     fig = back_starts_figure(task, groups, geometry)
@@ -209,6 +219,8 @@ def _parse(argv):
     parser.add_argument("--task", default=None, help="only this task")
     parser.add_argument("--marks", default="", help="comma-separated env steps of the results table")
     parser.add_argument("--window", default="", help="START:STOP env steps of the window table")
+    parser.add_argument("--visitation-step", type=int, default=None,
+                        help="heatmaps at the latest saved step at or below this (default: each agent's)")
     args = parser.parse_args(argv)
     try:
         args.marks = [int(m) for m in args.marks.split(",") if m.strip()]
@@ -242,7 +254,7 @@ def main(argv: list[str]) -> int:
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for task in tasks:
-        written += write_task(task, groups, out, stamp_for)
+        written += write_task(task, groups, out, stamp_for, args.visitation_step)
         written += write_table(task, groups, out, args.marks, stamp_for)
         if args.window:
             written += write_window(task, groups, out, args.window, stamp_for)

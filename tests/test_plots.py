@@ -130,3 +130,23 @@ def test_bad_window_is_one_line(runs, tmp_path, window, capsys):
         plots.main([str(runs), "--out", str(tmp_path / "out"), "--window", window])
     assert exited.value.code == 2
     assert "--window" in capsys.readouterr().err.splitlines()[-1]
+
+
+def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
+    # ibc's seeds ran for different lengths and saved at steps no other agent has.
+    for seed, saved in ((0, (2800, 5800)), (1, (2800,))):
+        run_dir = runs / "point_umaze" / "ibc" / f"seed{seed}"
+        write_run(run_dir, "point_umaze", "ibc", seed, [0.0, 0.0, 0.0])
+        for step in STEPS:
+            (run_dir / "plots" / f"visitation_{step:09d}.npy").unlink()
+        for step in saved:
+            np.save(run_dir / "plots" / f"visitation_{step:09d}.npy", np.zeros((50, 50)))
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    geometry = plots.TaskGeometry("point_umaze")
+    fig, steps = plots.visitation_figure("point_umaze", groups, geometry)
+    assert steps == {"ibc": 2800, "morefree": 7500, "rf_peg": 7500}  # ibc: the latest both seeds saved
+    assert [ax.get_title().splitlines()[1] for ax in fig.axes] == [
+        "(2 seeds, step 2,800)", "(3 seeds, step 7,500)", "(2 seeds, step 7,500)"]
+    _, capped = plots.visitation_figure("point_umaze", groups, geometry, cap=5000)
+    assert capped == {"ibc": 2800, "morefree": 5000, "rf_peg": 5000}
+    assert plots.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
