@@ -3,13 +3,20 @@ lines, exit codes, plots at the end) with a stand-in for the train command that 
 
 from __future__ import annotations
 
+import os
+import pathlib
+import signal
+import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 
 from experiments import experiment
 from morefree_jax.config_run import ConfigError
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
 
 # Writes a run dir per seed like experiments.train would (config.json, metrics.jsonl with an evaluation).
 FAKE_TRAIN = textwrap.dedent("""
@@ -67,3 +74,52 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
     assert "a failing agent" in (tmp_path / "runs/tabletop/dreamer_gc/train.log").read_text()
     assert (tmp_path / "runs/tabletop/rf_peg/seed1/metrics.jsonl").exists()
     assert plotted == [["runs/tabletop", "--out", "results", "--task", "tabletop"]]
+
+
+def _wait_until_gone(group: int, timeout_s: float = 60) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(group, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"process group {group} still alive {timeout_s} s after SIGKILL")
+
+
+def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
+    """The real command: r3l (the fused model-free chunk compiles in seconds) with 2 seeds at the debug
+    preset, SIGKILLed with its train process once the first chunk's checkpoint is complete, then re-run."""
+    from tests.loop_helpers import COMPILATION_CACHE, debug_args
+    from tests.test_model_free import CHUNK, MF_ARGS, PREFILL
+
+    # The train arguments of test_model_free's r3l group run, so the compilation cache can serve them.
+    passed = [arg for arg in debug_args("agent=r3l", *MF_ARGS)
+              if arg.split("=")[0] not in ("env", "seed", "agent")]
+    command = [sys.executable, "-m", "experiments.experiment", "task=tabletop", "agents=r3l", "seeds=0,1",
+               f"steps={PREFILL + 3 * CHUNK}", "parallel=1", *passed]
+    env = {**os.environ, "PYTHONPATH": f"{REPO / 'src'}:{REPO}",
+           "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    # Its own process group, so that the train process it started dies with it.
+    first = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, start_new_session=True)
+    checkpoint = tmp_path / "runs/tabletop/r3l/seed1/checkpoints" / str(PREFILL + CHUNK) / "files.json"
+    deadline = time.monotonic() + 600
+    while not checkpoint.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert first.poll() is None, first.stderr.read().decode()[-2000:]
+    os.killpg(first.pid, signal.SIGKILL)
+    first.wait()
+    _wait_until_gone(first.pid)  # the train process too: a live one still holds the run dirs' lock
+    assert not (tmp_path / "results").exists()  # killed before the end: no figures yet
+    second = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+    log = (tmp_path / "runs/tabletop/r3l/train.log").read_text()
+    assert second.returncode == 0, log[-3000:]
+    assert "r3l: step 250/250, success" in second.stdout and "[done]" in second.stdout
+    log = (tmp_path / "runs/tabletop/r3l/train.log").read_text()
+    assert "resuming from step" in log
+    for seed in (0, 1):
+        done = {p.name for p in (tmp_path / f"runs/tabletop/r3l/seed{seed}/checkpoints").iterdir()}
+        assert str(PREFILL + 3 * CHUNK) in done
+    drawn = {p.name for p in (tmp_path / "results").iterdir()}
+    assert {"tabletop_success.png", "tabletop_results.md"} <= drawn
