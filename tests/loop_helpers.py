@@ -91,15 +91,28 @@ def hlo_has_callback(jitted, *args) -> bool:
     return any("callback" in target.lower() for target in re.findall(r'custom_call_target="([^"]+)"', text))
 
 
-def sigkill_once_written(process: subprocess.Popen, path, timeout_s: float = 600) -> None:
+def sigkill_once_written(process: subprocess.Popen, path, timeout_s: float = 600,
+                         group: bool = False) -> None:
     """SIGKILLs a running CLI process as soon as `path` exists (e.g. a checkpoint's files.json); fails with
-    the process's stderr if it ended first."""
+    the process's stderr if it ended first. group: kill its whole process group (a process started with
+    start_new_session=True and its children) and wait until every member is gone."""
     deadline = time.monotonic() + timeout_s
     while not path.exists() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert process.poll() is None, process.stderr.read().decode()[-2000:]
-    process.send_signal(signal.SIGKILL)
+    if not group:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        return
+    os.killpg(process.pid, signal.SIGKILL)
     process.wait()
+    while time.monotonic() < deadline + 60:  # a dying child still holds its run dir's lock
+        try:
+            os.killpg(process.pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"process group {process.pid} still alive after SIGKILL")
 
 
 def unequal_leaves(a, b) -> list[str]:

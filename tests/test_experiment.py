@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import os
 import pathlib
-import signal
 import subprocess
 import sys
 import textwrap
-import time
 
 import pytest
 
@@ -76,21 +74,10 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
     assert plotted == [["runs/tabletop", "--out", "results", "--task", "tabletop"]]
 
 
-def _wait_until_gone(group: int, timeout_s: float = 60) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            os.killpg(group, 0)
-        except ProcessLookupError:
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"process group {group} still alive {timeout_s} s after SIGKILL")
-
-
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     """The real command: r3l (the fused model-free chunk compiles in seconds) with 2 seeds at the debug
     preset, SIGKILLed with its train process once the first chunk's checkpoint is complete, then re-run."""
-    from tests.loop_helpers import COMPILATION_CACHE, debug_args
+    from tests.loop_helpers import COMPILATION_CACHE, debug_args, sigkill_once_written
     from tests.test_model_free import CHUNK, MF_ARGS, PREFILL
 
     # The train arguments of test_model_free's r3l group run, so the compilation cache can serve them.
@@ -104,13 +91,7 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     first = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, start_new_session=True)
     checkpoint = tmp_path / "runs/tabletop/r3l/seed1/checkpoints" / str(PREFILL + CHUNK) / "files.json"
-    deadline = time.monotonic() + 600
-    while not checkpoint.exists() and first.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert first.poll() is None, first.stderr.read().decode()[-2000:]
-    os.killpg(first.pid, signal.SIGKILL)
-    first.wait()
-    _wait_until_gone(first.pid)  # the train process too: a live one still holds the run dirs' lock
+    sigkill_once_written(first, checkpoint, group=True)
     assert not (tmp_path / "results").exists()  # killed before the end: no figures yet
     second = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     log = (tmp_path / "runs/tabletop/r3l/train.log").read_text()
