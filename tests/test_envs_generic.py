@@ -2,32 +2,74 @@
 
 from __future__ import annotations
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from brax.envs.wrappers import training
-from conftest import cached_env, compiled_rollout
+from conftest import cached_env
 
 import envs_mjx
 
+INSTANCES, STEPS, EPISODE = 4, 200, 100  # the rollouts cross an episode end of the wrappers
 
-def test_rollout_200_steps_shapes_and_finite(env_name):
-    env = cached_env(env_name)
-    state0, final, observations = compiled_rollout(env_name, 200)(jax.random.PRNGKey(0))
-    assert state0.obs.shape == (env.observation_size,)
-    assert observations.shape == (200, env.observation_size)
+
+@functools.cache
+def wrapped_rollout(env_name: str):
+    """(brax-wrapped env, jitted rollout): brax's training wrappers (vmap over INSTANCES, episodes of
+    EPISODE, auto-reset) driven by STEPS uniform random actions in one lax.scan, one compile per task.
+    rollout(key) -> (first state, final state, observations (STEPS, INSTANCES, O), done (STEPS, INSTANCES)).
+    """
+    env = training.wrap(cached_env(env_name), episode_length=EPISODE)
+
+    def rollout(key):
+        key_reset, key_actions = jax.random.split(key)
+        first = env.reset(jax.random.split(key_reset, INSTANCES))
+        shape = (STEPS, INSTANCES, env.action_size)
+        actions = jax.random.uniform(key_actions, shape, minval=-1.0, maxval=1.0)
+
+        def body(state, action):
+            state = env.step(state, action)
+            return state, (state.obs, state.done)
+
+        final, (observations, done) = jax.lax.scan(body, first, actions)
+        return first, final, observations, done
+
+    return env, jax.jit(rollout)
+
+
+def test_rollout_through_brax_training_wrappers_is_finite_and_never_terminates(env_name):
+    env, rollout = wrapped_rollout(env_name)
+    first, final, observations, done = rollout(jax.random.PRNGKey(0))
+    assert first.obs.shape == (INSTANCES, env.observation_size)
+    assert observations.shape == (STEPS, INSTANCES, env.observation_size)
     assert bool(jnp.all(jnp.isfinite(observations)))
-    assert final.reward.shape == () and final.done.shape == ()
-    assert float(final.done) == 0.0, "a reset-free task never terminates"
+    assert final.reward.shape == final.done.shape == (INSTANCES,)
+    # A reset-free task never terminates: done comes only from the wrappers' episode ends.
+    ends = np.zeros((STEPS, INSTANCES), np.float32)
+    ends[EPISODE - 1 :: EPISODE] = 1.0
+    np.testing.assert_array_equal(np.asarray(done), ends)
+
+
+def test_wrapped_step_returns_the_types_it_was_given(env_name):
+    """A jitted step is traced once however the action values change only if the state it returns has
+    the shapes, dtypes and weak types it was given (a weakly typed action must not change them)."""
+    env, _ = wrapped_rollout(env_name)
+    first = jax.eval_shape(env.reset, jax.random.split(jax.random.PRNGKey(0), INSTANCES))
+    stepped = jax.eval_shape(env.step, first, jnp.full((INSTANCES, env.action_size), 0.5))
+    chex.assert_trees_all_equal_shapes_and_dtypes(stepped, first)
+    weak_types = functools.partial(jax.tree.map, lambda leaf: leaf.weak_type)
+    assert weak_types(stepped) == weak_types(first)
 
 
 def test_same_key_same_trajectory_different_keys_differ(env_name):
-    rollout = compiled_rollout(env_name, 200)
-    _, _, obs_a = rollout(jax.random.PRNGKey(1))
-    _, _, obs_b = rollout(jax.random.PRNGKey(1))
+    _, rollout = wrapped_rollout(env_name)
+    obs_a, obs_b = rollout(jax.random.PRNGKey(1))[2], rollout(jax.random.PRNGKey(1))[2]
     np.testing.assert_array_equal(np.asarray(obs_a), np.asarray(obs_b))
+    assert not np.array_equal(np.asarray(obs_a), np.asarray(rollout(jax.random.PRNGKey(2))[2]))
     env = cached_env(env_name)
     reset = jax.jit(env.reset)
     first, second = reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(2))
@@ -61,26 +103,6 @@ def test_reset_free_extension(env_name):
     # The reset state is an initial state in the task's sense.
     state = jax.jit(env.reset)(jax.random.PRNGKey(5))
     assert bool(env.task_relevant(state.obs))
-
-
-def test_brax_training_wrappers_vmap_and_step_without_retracing(env_name):
-    """brax's training wrappers (vmap over instances, episodes of 5, auto-reset) in one compiled step per
-    task, which must not retrace when only the action values change (a weakly typed action must not
-    change the state's dtypes)."""
-    env = training.wrap(cached_env(env_name), episode_length=5)
-    # chex keys its counter on the definition site, which every parametrization of this test shares.
-    chex.clear_trace_counter()
-
-    @jax.jit
-    @chex.assert_max_traces(n=1)
-    def step(state, action):
-        return env.step(state, action)
-
-    state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(3), 4))
-    for i in range(6):  # crosses the episode end, so AutoResetWrapper resets once
-        state = step(state, jnp.full((4, env.action_size), 0.1 * i))
-    assert state.obs.shape == (4, env.observation_size)
-    assert bool(jnp.all(jnp.isfinite(state.obs)))
 
 
 def test_registry_errors_list_valid_names():

@@ -70,10 +70,12 @@ def final_state(agent: str, run_dir):
 # (test_episodic_goal_and_phases_span_the_hard_reset_segment, test_eval_only_without_explore_...), and the
 # driver around them is the same. Their settings are in test_variants.py.
 COMBINED_PATHS = ("peg", "dreamer_gc", "mf_no_bfge", "mf_no_imag", "mf_task_only")
+# morefree last: the tests after this one run morefree, and debug_programs keeps one variant compiled.
+RUN_ORDER = sorted(VARIANTS, key=lambda agent: agent == "morefree")
 
 
 @pytest.mark.parametrize("agent", [pytest.param(agent, marks=pytest.mark.slow) if agent in COMBINED_PATHS
-                                   else agent for agent in VARIANTS])
+                                   else agent for agent in RUN_ORDER])
 def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
     summary = train(agent, tmp_path, TWO_CHUNKS)
     assert summary.env_steps == TWO_CHUNKS and not summary.interrupted
