@@ -120,7 +120,9 @@ def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = No
     that ran for different lengths each show their latest. (figure, {agent: step}); (None, {}) if none."""
     steps = {}
     for (t, agent), group in sorted(groups.items()):
-        common = set.intersection(*(_saved_visitation_steps(r) for r in group)) if t == task else set()
+        if t != task:
+            continue
+        common = set.intersection(*(_saved_visitation_steps(r) for r in group))
         eligible = [step for step in common if cap is None or step <= cap]
         if eligible:
             steps[agent] = max(eligible)
