@@ -2,14 +2,16 @@
 (`make experiment TASK=point_umaze AGENTS=morefree,rf_peg SEEDS=0,1,2 STEPS=100000`).
 
     python -m experiments.experiment task=point_umaze agents=morefree,rf_peg seeds=0,1,2 steps=100000 \
-        [preset=cpu] [parallel=2] [out=results] [key=value ...]
+        [preset=cpu] [parallel=2] [out=runs/<task>/results] [key=value ...]
 
 Each agent trains in its own process (`experiments.train ... seeds=...`) with run dirs
 runs/<task>/<agent>/seed<k> and its output in runs/<task>/<agent>/train.log; `parallel` agents run at once
 (default: one per CPU core, each pinned to its own core). Other key=value arguments go to every agent's
 train command. While they run, one progress line per agent is printed every 60 s. Re-running the same
 command resumes every agent from its checkpoints (a finished agent returns at once). When all have
-finished, `experiments.plots runs/<task> --out <out>` draws the task's figures and table. Ctrl-C stops
+finished, `experiments.plots runs/<task> --out <out>` draws the task's figures and table; `out` defaults to
+runs/<task>/results, beside the runs and outside git, so that a later run from the same checkout is not
+stamped `+dirty` by redrawn tracked figures (`make plots OUT=results` updates the repository's). Ctrl-C stops
 every agent after its current chunk (each saves a checkpoint). Bad input: one line, exit 2.
 """
 
@@ -54,7 +56,7 @@ def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
         raise ConfigError(f"agents must be distinct names among {', '.join(AGENTS)}; "
                           f"got {','.join(agents) or '(none)'}")
     settings = {"task": own["task"], "agents": agents, "seeds": parse_seeds(own.get("seeds", "0,1,2")),
-                "steps": own.get("steps"), "out": own.get("out", "results")}
+                "steps": own.get("steps"), "out": own.get("out", f"runs/{own['task']}/results")}
     settings["parallel"] = _positive_int("parallel", own.get("parallel", str(os.cpu_count() or 1)))
     if settings["steps"] is not None:
         _positive_int("steps", settings["steps"])

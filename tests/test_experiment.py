@@ -71,7 +71,7 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
     assert "dreamer_gc exited with 2; see runs/tabletop/dreamer_gc/train.log" in err
     assert "a failing agent" in (tmp_path / "runs/tabletop/dreamer_gc/train.log").read_text()
     assert (tmp_path / "runs/tabletop/rf_peg/seed1/metrics.jsonl").exists()
-    assert plotted == [["runs/tabletop", "--out", "results", "--task", "tabletop"]]
+    assert plotted == [["runs/tabletop", "--out", "runs/tabletop/results", "--task", "tabletop"]]
 
 
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
@@ -92,7 +92,8 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
                              stderr=subprocess.PIPE, start_new_session=True)
     checkpoint = tmp_path / "runs/tabletop/r3l/seed1/checkpoints" / str(PREFILL + CHUNK) / "files.json"
     sigkill_once_written(first, checkpoint, group=True)
-    assert not (tmp_path / "results").exists()  # killed before the end: no figures yet
+    figures = tmp_path / "runs/tabletop/results"  # beside the runs: the repository's results/ stays as it is
+    assert not figures.exists()  # killed before the end: no figures yet
     second = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     log = (tmp_path / "runs/tabletop/r3l/train.log").read_text()
     assert second.returncode == 0, log[-3000:]
@@ -102,5 +103,6 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     for seed in (0, 1):
         done = {p.name for p in (tmp_path / f"runs/tabletop/r3l/seed{seed}/checkpoints").iterdir()}
         assert str(PREFILL + 3 * CHUNK) in done
-    drawn = {p.name for p in (tmp_path / "results").iterdir()}
+    drawn = {p.name for p in figures.iterdir()}
+    assert not (tmp_path / "results").exists()
     assert {"tabletop_success.png", "tabletop_results.md"} <= drawn

@@ -13,6 +13,7 @@ import pathlib
 import subprocess
 
 _REPO = pathlib.Path(__file__).resolve().parents[2]  # src/morefree_jax/ -> the checkout's root
+RESULTS_DIR = "results"  # the repository's figures and tables (make plots OUT=results)
 
 
 def _git(*args: str) -> str | None:
@@ -26,9 +27,12 @@ def _git(*args: str) -> str | None:
 
 @functools.lru_cache(maxsize=1)
 def code_version() -> dict:
-    """{"commit": full sha or None, "dirty": tracked files differ from the commit (None if unknown)}."""
+    """{"commit": full sha or None, "dirty": tracked files differ from the commit (None if unknown)}.
+
+    The figures and tables under results/ are outputs, not code: redrawing them while runs go on must not
+    mark those runs' code as changed, so they are left out of the check."""
     commit = _git("rev-parse", "HEAD")
     if commit is None:
         return {"commit": None, "dirty": None}
-    status = _git("status", "--porcelain", "--untracked-files=no")
+    status = _git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){RESULTS_DIR}")
     return {"commit": commit, "dirty": None if status is None else bool(status)}
