@@ -122,7 +122,11 @@ class _Parts:
         return state.replace(agent=agent, replay=replay, stream=stream, key=key), records
 
     def step(self, carry, key, learn: bool):
-        """One env step of the stream (module docstring); `learn` False is the seed phase."""
+        """One env step of the stream (module docstring); `learn` False is the seed phase.
+
+        A deviation from MEDAL, whose loops update between drawing the action and stepping the env: we store
+        the transition first, so a batch may hold it (README, "Order within a step": MEDAL's order made the
+        fused chunk slower, XLA copying the replay to run the update beside the env step)."""
         agent, buffers, stream = carry
         key_act, key_update, key_next = jax.random.split(key, 3)
         obs, goal = stream.env_state.obs, stream.goal
