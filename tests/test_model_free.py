@@ -4,12 +4,14 @@ The SAC learner itself is tested in test_sac.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
 import pathlib
 import subprocess
 import sys
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +22,8 @@ import envs_mjx
 from experiments import train as train_cli
 from morefree_jax import loop
 from morefree_jax.baselines import rewards
+from morefree_jax.baselines import run_fns as mf_run_fns
+from morefree_jax.baselines.agents import make_model_free_agent
 from morefree_jax.baselines.buffer import Stored, init_buffer, insert_where, sample
 from morefree_jax.baselines.config import ClassifierConfig, RNDConfig
 from morefree_jax.checkpoint import latest_valid
@@ -136,6 +140,34 @@ def test_fused_chunk_compiles_once_without_host_callbacks(agent):
         agent_state.forward.updates + agent_state.backward.updates)
     assert np.all(updates == 2 * CHUNK) and np.all(metrics["train/updates"] == updates)  # UTD 1 per seed
     assert all(np.all(np.isfinite(value)) for value in metrics.values())
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplaySizeSpy:
+    """An Oracle learner whose update reports the replay size it was given instead of learning."""
+
+    inner: Any
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def update(self, state, buffers, direction, step, key):
+        return state, {"sac/seen": buffers[0].count.astype(jnp.float32)}
+
+
+def test_update_precedes_the_env_step_and_chunks_store_their_last_transition():
+    """MEDAL's order: step i of a chunk updates on the replay before its own transition is stored."""
+    config = mf_config("oracle_sac", "steps=200")
+    env = envs_mjx.make(config.run.env)
+    spy = ReplaySizeSpy(make_model_free_agent("oracle_sac", config.baseline, env))
+    parts = mf_run_fns._Parts(config, env, spy)
+    state = jax.jit(parts.prefill)(parts.init(jax.random.PRNGKey(0)))
+    run_chunk = jax.jit(lambda s: parts.run_steps(s, CHUNK, learn=True))
+    for chunk in range(2):
+        state, records = run_chunk(state)
+        first = PREFILL + chunk * CHUNK
+        np.testing.assert_array_equal(records["sac/seen"], first + np.arange(CHUNK))
+        assert int(state.replay[0].count) == first + CHUNK  # the chunk's last transition is in
 
 
 def test_oracle_episodes_end_on_success_or_timeout_without_bootstrap():

@@ -4,11 +4,11 @@ serve both.
 
     fns = make_model_free_fns(config, env)       # config.run.agent: oracle_sac, r3l or medal
     state = fns.prefill(fns.init(key))           # the seed phase: uniform random actions, no updates
-    state, metrics = fns.collect(state)          # one fused chunk: act, env step, store, one SAC update
+    state, metrics = fns.collect(state)          # one fused chunk: act, one SAC update, env step, store
 
 `collect` is the whole training step: each of its `config.baseline.chunk_len` env steps, inside one
-`lax.scan`, picks the action, steps the env, writes the transition into the device replay and runs the
-acting agent's SAC update (UTD 1), with no host round trip. There is no separate train call
+`lax.scan`, picks the action, runs the acting agent's SAC update (UTD 1), steps the env and writes the
+transition into the device replay (MEDAL's order), with no host round trip. There is no separate train call
 (`train_updates` is None). The stream is episodic for oracle_sac and reset-free (hard resets only) for
 r3l and medal (baselines/agents.py, baselines/medal.py).
 """
@@ -16,7 +16,7 @@ r3l and medal (baselines/agents.py, baselines/medal.py).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -84,6 +84,19 @@ def make_model_free_fns(config, env):
                   ForwardPolicy(parts.learner), config.baseline.chunk_len, config.baseline.chunk_len, config)
 
 
+class _Pending(NamedTuple):
+    """The previous env step's transition, stored at the start of the next step (_Parts.step)."""
+
+    transition: Stored
+    direction: jax.Array  # the buffer it goes to
+    valid: jax.Array  # False at the start of a chunk: the last chunk stored its own
+
+
+def _store(buffers: tuple[TransitionBuffer, ...], pending: _Pending) -> tuple[TransitionBuffer, ...]:
+    return tuple(insert_where(buffer, pending.transition, pending.valid & (pending.direction == index))
+                 for index, buffer in enumerate(buffers))
+
+
 @dataclasses.dataclass(frozen=True)
 class _Parts:
     config: Any
@@ -117,35 +130,44 @@ class _Parts:
     def run_steps(self, state: ModelFreeRunState, length: int, learn: bool):
         key, key_steps = jax.random.split(state.key)
         step = lambda carry, k: self.step(carry, k, learn)  # noqa: E731
-        (agent, replay, stream), records = jax.lax.scan(step, (state.agent, state.replay, state.stream),
-                                                        jax.random.split(key_steps, length))
+        nothing = _Pending(jax.tree.map(jnp.zeros_like, self.transition_shape()), state.stream.direction,
+                           jnp.zeros((), bool))
+        (agent, replay, stream, pending), records = jax.lax.scan(
+            step, (state.agent, state.replay, state.stream, nothing), jax.random.split(key_steps, length))
+        replay = _store(replay, pending)  # the chunk's last transition: a checkpoint holds the whole stream
         return state.replace(agent=agent, replay=replay, stream=stream, key=key), records
+
+    def transition_shape(self) -> Stored:
+        obs, actions = jnp.zeros(self.env.observation_size), jnp.zeros(self.env.action_size)
+        return Stored(obs, obs, actions, jnp.zeros(()), obs, jnp.zeros(()))
 
     def step(self, carry, key, learn: bool):
         """One env step of the stream (module docstring); `learn` False is the seed phase.
 
-        A deviation from MEDAL, whose loops update between drawing the action and stepping the env: we store
-        the transition first, so a batch may hold it (README, "Order within a step": MEDAL's order made the
-        fused chunk slower, XLA copying the replay to run the update beside the env step)."""
-        agent, buffers, stream = carry
+        MEDAL's order (oracle.py, medal.py): draw the action, update on the replay as it stands, step the
+        env, store the transition. The store is carried to the start of the next step (`_Pending`): the
+        update and the env step then share no buffer, so XLA neither copies the replay nor serialises them.
+        An agent's first update therefore needs a filled replay: the seed phase (run.prefill) or MEDAL's
+        demonstrations provide it, as MEDAL's seed frames do."""
+        agent, buffers, stream, pending = carry
+        buffers = _store(buffers, pending)
         key_act, key_update, key_next = jax.random.split(key, 3)
         obs, goal = stream.env_state.obs, stream.goal
         if learn or self.learner.acts_in_seed_phase:
             action = self.learner.act(agent, stream.direction, jnp.concatenate([obs, goal]), key_act)
         else:
             action = jax.random.uniform(key_act, (self.env.action_size,), minval=-1.0, maxval=1.0)
+        metrics = {}
+        if learn:
+            agent, metrics = self.learner.update(agent, buffers, stream.direction, stream.steps, key_update)
         env_state = self.env.step(stream.env_state, action)
         success = self.env.success(env_state.obs, goal) & (stream.direction == FORWARD)
         end, reset = self.segment_end(stream, success)
         stored = Stored(obs, goal, action, success.astype(jnp.float32), env_state.obs, 1.0 - end)
-        buffers = tuple(insert_where(buffer, stored, stream.direction == index)
-                        for index, buffer in enumerate(buffers))
         agent = self.learner.observe(agent, env_state.obs)
-        metrics = {}
-        if learn:
-            agent, metrics = self.learner.update(agent, buffers, stream.direction, stream.steps, key_update)
         record = {"success": success, "end": end, "direction": stream.direction, **metrics}
-        return (agent, buffers, self.next_segment(stream, env_state, end, reset, key_next)), record
+        pending = _Pending(stored, stream.direction, jnp.ones((), bool))
+        return (agent, buffers, self.next_segment(stream, env_state, end, reset, key_next), pending), record
 
     def segment_end(self, stream: ModelFreeStream, success):
         """(the episode or segment ends on this step, the env resets after it)."""
