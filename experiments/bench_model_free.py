@@ -3,11 +3,11 @@
     PYTHONPATH=src:. python -m experiments.bench --only model_free [--quick]
 
 Rows {"section", "name", "value", "unit", "note"}:
-  <task>_<agent>_steps_per_s   env steps/s of the fused chunk (policy, env step, replay insert and one SAC
-                               update per step, MEDAL's sizes: batch 256, 2 x 256 heads) of oracle_sac on
-                               every task, r3l, medal and ibc (3 x 512 heads, batch 512) on point_umaze
-                               and tabletop; 1,000-step chunks, median of 3 after the compile, with the
-                               compile time in the note.
+  <task>_<agent>_steps_per_s   env steps/s of the fused chunk (policy, one SAC update, env step and
+                               replay insert per step, MEDAL's sizes: batch 256, 2 x 256 heads) of
+                               oracle_sac on every task, r3l, medal and ibc (3 x 512 heads, batch 512)
+                               on point_umaze and tabletop; 1,000-step chunks, median of 3 after the
+                               compile, with the compile time in the note.
   ibc_matching_s               one curriculum matching of ibc at its sizes on push (pool 1,000 x 50 steps,
                                10 actions valued by the 3 x 512 critic, 50 slots), compiled; it runs once
                                per 20 forward segments.
