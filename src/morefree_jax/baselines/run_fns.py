@@ -130,14 +130,14 @@ class _Parts:
     def run_steps(self, state: ModelFreeRunState, length: int, learn: bool):
         key, key_steps = jax.random.split(state.key)
         step = lambda carry, k: self.step(carry, k, learn)  # noqa: E731
-        nothing = _Pending(jax.tree.map(jnp.zeros_like, self.transition_shape()), state.stream.direction,
-                           jnp.zeros((), bool))
+        nothing = _Pending(self.empty_transition(), state.stream.direction, jnp.zeros((), bool))
         (agent, replay, stream, pending), records = jax.lax.scan(
             step, (state.agent, state.replay, state.stream, nothing), jax.random.split(key_steps, length))
         replay = _store(replay, pending)  # the chunk's last transition: a checkpoint holds the whole stream
         return state.replace(agent=agent, replay=replay, stream=stream, key=key), records
 
-    def transition_shape(self) -> Stored:
+    def empty_transition(self) -> Stored:
+        """A transition of zeros: what a chunk's first step has pending (nothing; `valid` is False)."""
         obs, actions = jnp.zeros(self.env.observation_size), jnp.zeros(self.env.action_size)
         return Stored(obs, obs, actions, jnp.zeros(()), obs, jnp.zeros(()))
 
