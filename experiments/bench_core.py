@@ -55,6 +55,17 @@ def matmul_peak(n: int = 2048, reps: int = 5) -> float:
     return 2 * n**3 / _time(f, a, reps=reps)
 
 
+def layer_chains_rate(n: int = 256, layers: int = 100, reps: int = 3) -> float:
+    """FLOP/s of two independent chains of tanh(x @ w) layers (n x n x n) in one compiled loop: the rate a
+    learner's n-row, n-wide layers reach here when both threads have independent work."""
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    x, y, w, v = (0.05 * jax.random.normal(k, (n, n)) for k in keys)
+    step = lambda i, c: (jnp.tanh(c[0] @ w), jnp.tanh(c[1] @ v))  # noqa: E731
+    chains = jax.jit(lambda x, y: jax.lax.fori_loop(0, layers, step, (x, y)))
+    jax.block_until_ready(chains(x, y))
+    return 2 * layers * 2 * n**3 / _time(chains, x, y, reps=reps)
+
+
 def _inputs(name: str):
     cfg, spec = preset(name), SHAPES[name]
     agent = make_agent(cfg, spec)

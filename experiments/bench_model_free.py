@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 
 import envs_mjx
-from experiments.bench_core import matmul_peak
+from experiments.bench_core import layer_chains_rate, matmul_peak
 from morefree_jax.baselines import sac
 from morefree_jax.baselines.curriculum import Curriculum
 from morefree_jax.baselines.ibc import IBCLearner
@@ -103,22 +103,6 @@ def update_rows(obs_size: int = 12, action_size: int = 2, updates: int = 200) ->
     layer_note = f"{flops / 1e6:.0f} MFLOP at {layers / 1e9:.0f} GFLOP/s (two chains of 256^3 layers)"
     return [_row("sac_update_ms", 1e3 * seconds, "ms", note),
             _row("sac_update_at_layer_rate_ms", 1e3 * flops / layers, "ms", layer_note)], 1e3 * seconds
-
-
-def layer_chains_rate(n: int = 256, layers: int = 100, reps: int = 3) -> float:
-    """FLOP/s of two independent chains of tanh(x @ w) layers (n x n x n) in one compiled loop: the rate the
-    SAC update's dominant matmul shape reaches here when both threads have independent work."""
-    keys = jax.random.split(jax.random.PRNGKey(0), 4)
-    x, y, w, v = (0.05 * jax.random.normal(k, (n, n)) for k in keys)
-    step = lambda i, c: (jnp.tanh(c[0] @ w), jnp.tanh(c[1] @ v))  # noqa: E731
-    chains = jax.jit(lambda x, y: jax.lax.fori_loop(0, layers, step, (x, y)))
-    jax.block_until_ready(chains(x, y))
-    times = []
-    for _ in range(reps):
-        start = time.perf_counter()
-        jax.block_until_ready(chains(x, y))
-        times.append(time.perf_counter() - start)
-    return 2 * layers * 2 * n**3 / min(times)
 
 
 def matching_row(task: str = "push") -> dict:
