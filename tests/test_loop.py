@@ -273,10 +273,17 @@ def test_evaluate_cli_prints_success_per_goal_and_writes_a_video(tmp_path):
 
 
 def test_a_non_finite_update_is_dropped():
-    old = {"w": jnp.ones(3), "count": jnp.asarray(4, jnp.int32)}
-    good = {"w": jnp.full(3, 2.0), "count": jnp.asarray(5, jnp.int32)}
-    bad = {"w": jnp.array([2.0, jnp.nan, 2.0]), "count": jnp.asarray(5, jnp.int32)}
+    old = {"a": jnp.zeros(2), "w": jnp.ones(3), "count": jnp.asarray(4, jnp.int32)}
+    good = {"a": jnp.full(2, 3.0), "w": jnp.full(3, 2.0), "count": jnp.asarray(5, jnp.int32)}
     kept, finite = jax.jit(keep_if_finite)(good, old)
     assert bool(finite) and float(kept["w"][0]) == 2.0 and int(kept["count"]) == 5
-    kept, finite = jax.jit(keep_if_finite)(bad, old)
-    assert not bool(finite) and np.all(np.asarray(kept["w"]) == 1.0) and int(kept["count"]) == 4
+    for leaf, value in (("a", jnp.inf), ("w", jnp.nan)):  # the first leaf and a later one
+        bad = {**good, leaf: good[leaf].at[1].set(value)}
+        kept, finite = jax.jit(keep_if_finite)(bad, old)
+        assert not bool(finite) and jax.tree.all(jax.tree.map(jnp.array_equal, kept, old))
+    # Per seed under vmap (the seed group's "vmap" mode): only the seed with the NaN keeps its old state.
+    bad = {**good, "w": good["w"].at[1].set(jnp.nan)}
+    stacked = lambda *trees: jax.tree.map(lambda *xs: jnp.stack(xs), *trees)  # noqa: E731
+    kept, finite = jax.jit(jax.vmap(keep_if_finite))(stacked(good, bad), stacked(old, old))
+    assert finite.tolist() == [True, False]
+    assert jax.tree.all(jax.tree.map(jnp.array_equal, kept, stacked(good, old)))
