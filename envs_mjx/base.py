@@ -191,6 +191,14 @@ class ResetFreeEnv(Env, abc.ABC):
 
     def render(self, data: mjx.Data, width: int = 320, height: int = 240, camera: int | str = -1):
         """An RGB frame (H, W, 3) of an unbatched pipeline state, rendered by C MuJoCo (no GPU needed)."""
+        return self.render_frames([data], width, height, camera)[0]
+
+    def render_frames(self, datas, width: int = 320, height: int = 240, camera: int | str = -1) -> np.ndarray:
+        """RGB frames (T, H, W, 3) of a sequence of unbatched pipeline states, through one renderer (making
+        a renderer costs more than rendering a frame: ~0.1 s against ~0.08 s on the dev machine)."""
         with mujoco.Renderer(self.mj_model, height=height, width=width) as renderer:
-            renderer.update_scene(self.mj_data_from(data), camera=camera)
-            return renderer.render()
+            frames = []
+            for data in datas:
+                renderer.update_scene(self.mj_data_from(data), camera=camera)
+                frames.append(renderer.render())
+        return np.stack(frames)

@@ -26,7 +26,7 @@ TRACES = {"train_step": 0, "act": 0}
 def setup():
     cfg = preset("debug")
     batch = fixed_batch(cfg.replay.batch, cfg.replay.length)
-    obs_size = batch.obs.shape[-1]  # point_umaze's once registered, else the stand-in's
+    obs_size = batch.obs.shape[-1]
     agent = make_agent(cfg, EnvSpec(obs_size=obs_size, action_size=2, goal_dims=(0, 1)))
 
     def counted_train_step(*args):
@@ -42,10 +42,20 @@ def setup():
     return agent, seeds_step, jax.jit(counted_act), batch, pools
 
 
+def init_state(seed: int):
+    """The agent's initial state, initialised by one compiled call (op by op it takes seconds)."""
+    return _jitted_init()(jax.random.PRNGKey(seed))
+
+
+@functools.cache
+def _jitted_init():
+    return jax.jit(setup()[0].init)
+
+
 def test_train_step_traces_once_keeps_structure_is_deterministic_and_vmaps_over_seeds():
     # One compilation of jax.vmap(train_step) over 2 seeds serves every check (compile time dominates).
     agent, train_step, _, batch, pools = setup()
-    state = jax.vmap(agent.init)(jax.random.split(jax.random.PRNGKey(0), 2))
+    state = jax.jit(jax.vmap(agent.init))(jax.random.split(jax.random.PRNGKey(0), 2))
     initial = state
     for i in range(3):
         state, metrics = train_step(state, batch, pools, jax.random.split(jax.random.PRNGKey(i), 2))
@@ -77,7 +87,7 @@ def test_train_step_traces_once_keeps_structure_is_deterministic_and_vmaps_over_
 
 def test_act_single_env_and_vmapped_modes():
     agent, train_step, act, batch, pools = setup()
-    state = agent.init(jax.random.PRNGKey(3))
+    state = init_state(3)
     obs_size = batch.obs.shape[-1]
     obs = jnp.zeros(obs_size).at[:2].set(jnp.array([0.1, 0.2]))
     goal = jnp.zeros(obs_size).at[:2].set(jnp.array([0.5, 0.5]))
@@ -118,7 +128,7 @@ def test_act_single_env_and_vmapped_modes():
 def test_act_on_a_goal_context_matches_act_on_the_goal():
     agent, _, _, batch, _ = setup()
     act = jax.jit(agent.act)  # not the trace-counting one: this test traces its own variants
-    state = acting_state(agent.init(jax.random.PRNGKey(5)))
+    state = acting_state(init_state(5))
     obs_size = batch.obs.shape[-1]
     obs, goal = jnp.full(obs_size, 0.1), jnp.full(obs_size, 0.7)
     latent, prev, key = agent.initial_latent(()), jnp.full(2, 0.3), jax.random.PRNGKey(1)
@@ -159,7 +169,7 @@ def test_acting_noise_is_standard_normal_and_uniform():
 
 def test_planner_building_blocks_shapes():
     agent, _, _, batch, _ = setup()
-    state = agent.init(jax.random.PRNGKey(4))
+    state = init_state(4)
     goals = jax.random.uniform(jax.random.PRNGKey(5), (6, batch.obs.shape[-1]))
     traj = jax.jit(agent.imagine_to_goals, static_argnums=3)(state, agent.initial_latent(()), goals, 7,
                                                            jax.random.PRNGKey(6))

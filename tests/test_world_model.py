@@ -8,7 +8,7 @@ import numpy as np
 from morefree_jax.config import preset
 from morefree_jax.networks import init_net_state, make_optimizer
 from morefree_jax.world_model import init_world_model, make_world_model, world_model_update
-from tests.core_helpers import fixed_batch, task_stream
+from tests.core_helpers import fixed_batch
 
 
 def test_world_model_fits_fixed_batch_of_task_data():
@@ -33,6 +33,6 @@ def test_world_model_fits_fixed_batch_of_task_data():
     for name, values in metrics.items():
         assert np.all(np.isfinite(np.asarray(values))), name
     first, last = recon[0], recon[-5:].mean()
-    print("data:", task_stream(cfg.replay.batch * cfg.replay.length)[2], "recon", first, "->", last)
+    print("recon", first, "->", last)
     assert last * 5 <= first, (first, last)
     assert np.asarray(metrics["wm/embed_loss"])[-5:].mean() < np.asarray(metrics["wm/embed_loss"])[0]

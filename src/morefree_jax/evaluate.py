@@ -114,11 +114,8 @@ def render_episode(env, pipeline_states, episode: int = 0, width: int = 320, hei
     MuJoCo on the CPU (set MUJOCO_GL=egl on a headless machine)."""
     states = jax.device_get(pipeline_states)
     length = jax.tree.leaves(states)[0].shape[0]
-    frames = []
-    for t in range(length):
-        data = jax.tree.map(lambda x, t=t: x[t, episode], states)
-        frames.append(env.render(data, width=width, height=height))
-    return np.stack(frames)
+    steps = (jax.tree.map(lambda x, t=t: x[t, episode], states) for t in range(length))
+    return env.render_frames(steps, width=width, height=height)
 
 
 def write_video(frames: np.ndarray, path, fps: int = 20) -> str:
