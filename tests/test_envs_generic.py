@@ -85,8 +85,9 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
 def test_reset_free_extension(env_name):
     env = cached_env(env_name)
     key_goal, key_init = jax.random.split(jax.random.PRNGKey(4))
-    goal = env.eval_goals(key_goal)
-    init = env.initial_states(key_init)
+    # compiled: op by op, a Fetch task's goal and initial-state samplers take ~6 s
+    goal = jax.jit(env.eval_goals)(key_goal)
+    init = jax.jit(env.initial_states)(key_init)
     assert goal.shape == init.shape == (env.observation_size,)
     assert bool(env.success(goal, goal)) and bool(env.task_relevant(goal)) and bool(env.task_relevant(init))
     assert env.xy(init).shape == (2,)
