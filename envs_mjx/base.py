@@ -194,8 +194,8 @@ class ResetFreeEnv(Env, abc.ABC):
         return self.render_frames([data], width, height, camera)[0]
 
     def render_frames(self, datas, width: int = 320, height: int = 240, camera: int | str = -1) -> np.ndarray:
-        """RGB frames (T, H, W, 3) of a sequence of unbatched pipeline states, through one renderer (making
-        a renderer costs more than rendering a frame: ~0.1 s against ~0.08 s on the dev machine)."""
+        """RGB frames (T, H, W, 3) of an iterable of unbatched pipeline states, through one renderer: making
+        a renderer costs more than rendering a frame (README, Tests)."""
         with mujoco.Renderer(self.mj_model, height=height, width=width) as renderer:
             frames = []
             for data in datas:

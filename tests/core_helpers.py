@@ -16,7 +16,7 @@ def task_stream(num_steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(obs (N, 4), actions (N, 2)): a random-action stream of a 2-D point mass in a walled box, obs =
     (x, y, vx, vy), PointUMaze's layout family (position + velocity).
 
-    A stand-in, not point_umaze itself: its MJX step costs ~15 s of compile in every test process that
+    A stand-in, not point_umaze itself: its MJX step costs seconds of compile in every test process that
     builds a batch, and the learning-core tests need only a smooth stream with a 2-D position (the task's
     physics has its own tests)."""
     actions = jax.random.uniform(jax.random.PRNGKey(seed), (num_steps, 2), minval=-1.0, maxval=1.0)

@@ -85,7 +85,7 @@ def test_same_key_same_trajectory_different_keys_differ(env_name):
 def test_reset_free_extension(env_name):
     env = cached_env(env_name)
     key_goal, key_init = jax.random.split(jax.random.PRNGKey(4))
-    # compiled: op by op, a Fetch task's goal and initial-state samplers take ~6 s
+    # compiled: op by op, a Fetch task's goal and initial-state samplers take seconds
     goal = jax.jit(env.eval_goals)(key_goal)
     init = jax.jit(env.initial_states)(key_init)
     assert goal.shape == init.shape == (env.observation_size,)

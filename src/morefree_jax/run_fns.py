@@ -89,8 +89,8 @@ def keep_if_finite(new_state, old_state):
     leaf_finite = jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(new_state)
                              if jnp.issubdtype(x.dtype, jnp.inexact)])
     # all() as the flag at argmin (False wherever one is): XLA turns jnp.all of stacked scalars into a chain
-    # of ands and copies that chain into every leaf's select (leaves^2 ops: 3x the debug train program's
-    # compile time, seed vmap included); an argmin stays one reduction.
+    # of ands and copies that chain into every leaf's select (leaves^2 ops, which made the train program's
+    # compile several times longer, seed vmap included: README, Tests); an argmin stays one reduction.
     finite = leaf_finite[jnp.argmin(leaf_finite)]
     return jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, old_state), finite
 
