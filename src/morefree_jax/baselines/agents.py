@@ -76,6 +76,9 @@ class OracleSAC:
     periodic_metrics = {}  # metrics logged every n steps: none
 
     def fill_buffers(self, buffers, key):
+        # No demonstrations. baselines.md section 2 says MEDAL's oracle.py loads the forward demos when a
+        # task has them; the paper says only MEDAL uses demonstrations ("MEDAL also uses demonstrations
+        # and Oracle uses resets"), and the paper wins.
         return buffers
 
     def backward_goal(self, key):  # never acts backward (episodic); the stream asks for one regardless
