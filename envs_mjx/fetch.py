@@ -34,15 +34,20 @@ Deviations from the original, on purpose (also in README):
   - the gripper workspace is a box, the slide joints' range (the original's arm reach has no box):
     x, y over the table top minus the finger half-width, z in [0.417, 0.9];
   - push / pick_place: the block hangs on IBC's slides + ball joint with +-0.2 m x/y limits around the
-    initial gripper xy, with IBC v2's hardened limit solref/solimp (v1 used the softer defaults);
+    initial gripper xy + 2.5 cm (IBC_BLOCK_OFFSET), with IBC v2's hardened limit solref/solimp (v1 used
+    the softer defaults);
   - hard variants (MoReFree's, no public code): free block; frictionless walls whose inner faces are the
     table edges (0.6 x 0.7 m, 2.6x IBC's 0.4 x 0.4 box), colliding as planes; block start fixed at
     (1.43, 0.76) (IBC v2's near-fixed start) up to a U(-0.005, 0.005) xy jitter (the setting
     block_start_noise; 0 makes it exact) so that resets with different keys differ; push_hard goals
     uniform in the nominal block start +- 0.15 on the table; pick_place_hard goals uniform in
     x, y = nominal block start +- 0.025, z in [0.475, 0.575] (a 5 x 5 x 10 cm box);
-  - initial gripper z: 0.425 (push tasks) and 0.625 (pick-and-place tasks, the original's extra 0.2);
-    the original's settled z under MuJoCo 2.x is not known exactly;
+  - initial gripper: push at table height 0.425 (its mocap target lies below the table top, so the
+    gripper settles on it, which is also why IBC's push xy differs from pick-and-place's); pick_place at
+    z 0.5347, where the original's target (0.2 higher) is reached unobstructed: the start FetchReach
+    publishes for the same arm pose and extra height, whose xy (1.34183, 0.74910) is IBC's pick-and-place
+    limit centre. pick_place_hard starts like push_hard (the paper: "the same ... initial state ... with
+    Fetch Push described above");
   - evaluation goals are full observations: block at the goal, zero velocities, and the gripper 4.5 cm
     above the block with closed fingers, or (for goals in the air) holding it (grip at the block,
     fingers at the grasp width).
@@ -71,17 +76,24 @@ IBC_CONFINEMENT = 0.2  # block centre within +- this of the initial gripper xy (
 IBC_OBJ_RANGE = 0.15  # block start / goal xy range around the initial gripper xy
 IBC_MIN_START_DISTANCE = 0.1  # block start at least this far from the gripper xy
 IBC_AIR_HEIGHT = 0.45  # pick_place: half of the goals rise up to this above the table
+# IBC's block body sits 2.5 cm off its slides' frame in x and y, and the sampled start (like the slide
+# limits' centre, the initial gripper xy) is written into the slide qpos: block starts and the confinement
+# box are centred 2.5 cm off the gripper xy, the goals are not (envs.md, IBC block-position constraint).
+IBC_BLOCK_OFFSET = np.array([0.025, 0.025, 0.0])
 HARD_BLOCK_START = np.array([1.43, 0.76, BLOCK_REST_Z])
 # qpos layout of both models: grip slides x y z, fingers r l, block position (3) + quaternion (4).
 BLOCK_POSITION = slice(5, 8)
 BLOCK_QUATERNION = slice(8, 12)
 PUSH_GRIPPER_START = (1.3479, 0.7489, 0.425)  # IBC's initial gripper xy (its limit centres) per task
-PICK_PLACE_GRIPPER_START = (1.3419, 0.7491, 0.625)
+PICK_PLACE_GRIPPER_START = (1.3419, 0.7491, 0.5347)
 
 
-def ibc_box(gripper_start: tuple[float, float, float], height: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """IBC's block start / goal box: xy +- 0.15 around the initial gripper xy, z from rest up by height."""
+def ibc_box(gripper_start: tuple[float, float, float], height: float = 0.0,
+            offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """IBC's block goal box (start box: offset IBC_BLOCK_OFFSET): xy +- 0.15 around the initial gripper xy,
+    z from rest up by height."""
     center = np.array([gripper_start[0], gripper_start[1], BLOCK_REST_Z])
+    center = center if offset is None else center + offset
     return center - [IBC_OBJ_RANGE, IBC_OBJ_RANGE, 0.0], center + [IBC_OBJ_RANGE, IBC_OBJ_RANGE, height]
 
 
@@ -124,7 +136,8 @@ class _Fetch(ResetFreeEnv):
         discounts 0.99, subgoal threshold 1, prefill 25 episodes x 150 = 3750 steps. Budget 5e5 steps: the
         paper's 5 hard resets at one per 1e5 steps for the hard tasks (IBC's versions: the same, no count
         published). Planner: PEG's 3-stack MPPI (gamma 10, std_scale 0.5, last 10 steps) with 500 instead
-        of 2000 candidates for this CPU (choice); horizon 25 = H_G."""
+        of 2000 candidates for this CPU (choice); horizon 25 = H_G. Observations min-max normalised by
+        observation_bounds, as PEG's 3-stack agent sees them (its std_scale is in those units)."""
         return {
             "run.total_steps": 500_000, "run.prefill": 3_750, "run.train_every": 2,
             "run.subgoal_threshold": 1.0,
@@ -132,6 +145,7 @@ class _Fetch(ResetFreeEnv):
             "planner.method": "mppi", "planner.num_candidates": 500, "planner.iterations": 5,
             "planner.mppi_temperature": 10.0, "planner.init_std": 0.5, "planner.horizon": 25,
             "planner.use_last_steps": 10, "planner.init_mean": "current",
+            "agent.normalise_observations": True,
         }
 
     def __init__(self, eval_episode_length: int = 50, hard_reset_every: int = 100_000,
@@ -258,13 +272,18 @@ class _FetchIBC(_Fetch):
 
     xml_name = "fetch.xml"
 
+    @property
+    def block_center(self) -> np.ndarray:
+        """Centre of the block's start box and confinement box (IBC_BLOCK_OFFSET from the gripper xy)."""
+        return np.array([*self.gripper_start[:2], BLOCK_REST_Z]) + IBC_BLOCK_OFFSET
+
     def _place_block_body(self) -> np.ndarray:
-        origin = np.array([*self.gripper_start[:2], BLOCK_REST_Z])
+        origin = self.block_center
         self.mj_model.body("object0").pos[:] = origin
         return origin
 
     def _sample_block_start(self, rng: jax.Array) -> jax.Array:
-        """Uniform in +-0.15 around the gripper xy, at least 0.1 from it (first of 16 candidates)."""
+        """Offset uniform in +-0.15, at least 0.1 from 0 (first of 16 candidates), from block_center."""
         offsets = jax.random.uniform(rng, (16, 2), minval=-IBC_OBJ_RANGE, maxval=IBC_OBJ_RANGE)
         distance = jnp.linalg.norm(offsets, axis=-1)
         valid = distance >= IBC_MIN_START_DISTANCE
@@ -272,7 +291,7 @@ class _FetchIBC(_Fetch):
         # All 16 too close has probability ~5e-8; then push the first one out to the minimum distance.
         fallback = offsets[0] * IBC_MIN_START_DISTANCE / jnp.maximum(distance[0], 1e-6)
         offset = jnp.where(valid[first], offsets[first], fallback)
-        return jnp.concatenate([jnp.asarray(self.gripper_start[:2]) + offset, jnp.array([BLOCK_REST_Z])])
+        return jnp.asarray(self.block_center, jnp.float32) + jnp.concatenate([offset, jnp.zeros(1)])
 
 
 class _FetchHard(_Fetch):
@@ -298,14 +317,14 @@ class FetchPush(_FetchIBC):
     name = "push"
     gripper_start = PUSH_GRIPPER_START
     fingers_locked = True
-    block_start_low, block_start_high = ibc_box(PUSH_GRIPPER_START)
+    block_start_low, block_start_high = ibc_box(PUSH_GRIPPER_START, offset=IBC_BLOCK_OFFSET)
     goal_low, goal_high = ibc_box(PUSH_GRIPPER_START)
 
 
 class FetchPickPlace(_FetchIBC):
     name = "pick_place"
     gripper_start = PICK_PLACE_GRIPPER_START
-    block_start_low, block_start_high = ibc_box(PICK_PLACE_GRIPPER_START)
+    block_start_low, block_start_high = ibc_box(PICK_PLACE_GRIPPER_START, offset=IBC_BLOCK_OFFSET)
     goal_low, goal_high = ibc_box(PICK_PLACE_GRIPPER_START, height=IBC_AIR_HEIGHT)
 
     def _sample_goal_block(self, rng: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -326,6 +345,6 @@ class FetchPushHard(_FetchHard):
 
 class FetchPickPlaceHard(_FetchHard):
     name = "pick_place_hard"
-    gripper_start = PICK_PLACE_GRIPPER_START
+    gripper_start = PUSH_GRIPPER_START  # the paper: Push (hard)'s initial state
     goal_low = HARD_BLOCK_START + np.array([-0.025, -0.025, 0.05])
     goal_high = HARD_BLOCK_START + np.array([0.025, 0.025, 0.15])

@@ -89,10 +89,12 @@ LATER_SECTIONS = ("baseline", "baseline.ibc", "baseline.discriminator")
 
 def later_keys() -> dict:
     """Keys added to an existing section after run dirs existed, with the value a run that predates them
-    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained)."""
+    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), and
+    the observation normalisation (runs before it saw raw observations)."""
     from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
 
-    return {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
+    sac_options = {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
+    return {**sac_options, "agent.normalise_observations": False}
 
 
 def _has_section(tree: dict, dotted: str) -> bool:
@@ -106,9 +108,12 @@ def _has_section(tree: dict, dotted: str) -> bool:
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose values differ between two nested config dicts (missing on one side counts, except
     a LATER_SECTIONS section the stored config lacks and a later_keys() key it lacks, which held its
-    default). Both are compared in their JSON form (tuples and lists are equal)."""
-    stored_flat = {**_flatten_dict(_as_json(later_keys())), **_flatten_dict(_as_json(stored))}
+    default, where the current config has it). Both are compared in their JSON form (tuples and lists are
+    equal)."""
     current_flat = _flatten_dict(_as_json(current))
+    held_defaults = {key: value for key, value in _flatten_dict(_as_json(later_keys())).items()
+                     if key in current_flat}
+    stored_flat = {**held_defaults, **_flatten_dict(_as_json(stored))}
     later = tuple(f"{section}." for section in LATER_SECTIONS if not _has_section(stored, section))
     stored_flat = {key: value for key, value in stored_flat.items() if not key.startswith(later)}
     current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}

@@ -139,6 +139,9 @@ class AgentConfig:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     alpha: float = 0.2  # imagination goals: alpha/2 eval goals, alpha/2 initial states, 1-alpha replay
     imag_starts: int = 0  # posterior states imagination starts from; 0 = every state of the batch (PEG)
+    # Min-max normalise observations by the task's observation_bounds (envs_mjx/normalise.py), as PEG does
+    # for block stacking; the Fetch tasks, which take that config, turn it on.
+    normalise_observations: bool = False
 
     def __post_init__(self):
         _within(self, "alpha", 0.0, 2.0)  # 2: every imagination goal an evaluation goal (dreamer_gc)

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from envs_mjx.normalise import NormalisedObservations
 from morefree_jax import replay as replay_lib
 from morefree_jax.agent import Agent, AgentState, EnvSpec, make_agent
 from morefree_jax.back_starts import BackStarts, init_back_starts, record_back_start
@@ -120,6 +121,8 @@ def make_run_fns(config: Config, env, agent: Agent | None = None) -> RunFns:
         from morefree_jax.baselines.run_fns import make_model_free_fns
 
         return make_model_free_fns(config, env)
+    if config.agent.normalise_observations:
+        env = NormalisedObservations(env)
     check_run_config(config, env)
     agent = agent or make_agent(config.agent, EnvSpec.from_env(env))
     run = config.run
