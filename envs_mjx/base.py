@@ -8,6 +8,7 @@ the state can be rendered or compared with C MuJoCo. Batch with `jax.vmap`. Step
 The reset-free extension (design.md section 3):
   eval_goals(rng) / initial_states(rng)  one sample of the evaluation-goal / initial-state distribution,
                                          as an observation vector (goal space = observation space)
+  evaluation_goals(rng, num_episodes)    the goals of one evaluation (default: independent eval_goals)
   goal_dims                              observation indices that success depends on
   success(obs, goal)                     ||obs[goal_dims] - goal[goal_dims]|| < success_threshold
   reward(obs, goal)                      dense -distance on goal_dims (for reward-using baselines)
@@ -147,6 +148,11 @@ class ResetFreeEnv(Env, abc.ABC):
     @abc.abstractmethod
     def initial_states(self, rng: jax.Array) -> jax.Array:
         """One initial state as a full observation vector (obs_size,)."""
+
+    def evaluation_goals(self, rng: jax.Array, num_episodes: int) -> jax.Array:
+        """The goals (num_episodes, obs_size) of one episodic evaluation: independent draws of eval_goals
+        unless the task's evaluation fixes their order."""
+        return jax.vmap(self.eval_goals)(jax.random.split(rng, num_episodes))
 
     @abc.abstractmethod
     def task_relevant(self, obs: jax.Array) -> jax.Array:

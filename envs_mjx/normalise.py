@@ -59,6 +59,9 @@ class NormalisedObservations(Wrapper):
     def initial_states(self, rng: jax.Array) -> jax.Array:
         return self.normalise(self.env.initial_states(rng))
 
+    def evaluation_goals(self, rng: jax.Array, num_episodes: int) -> jax.Array:
+        return self.normalise(self.env.evaluation_goals(rng, num_episodes))
+
     @property
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros_like(self._low), np.ones_like(self._low)

@@ -79,8 +79,9 @@ class Tabletop(ResetFreeEnv):
     def default_config(cls) -> dict:
         """No PEG config exists. Learner: PEG's point-maze values (entropy 1e-4, no distance negatives),
         since like the point maze it is a planar task whose state is a few positions. Train ratio 1 (paper),
-        budget 2e5 steps (the paper: one hard reset, at the start, at one per 2e5 steps), PEG's prefill and
-        subgoal threshold defaults (2500 steps, 2). Planner: PEG's default MPPI (gamma 10, last 10 steps),
+        budget 2e5 steps (the paper: one hard reset, at the start, at one per 2e5 steps), prefill 2500 steps
+        (PEG's point maze and ant maze; its config default is 10000: choice) and subgoal threshold 2 (PEG's
+        walker and ant maze; choice). Planner: PEG's default MPPI (gamma 10, last 10 steps),
         std_scale 1 matched to the +-2.5 coordinate range (choice), horizon 100 = H_G."""
         return {
             "run.total_steps": 200_000, "run.prefill": 2_500, "run.train_every": 1,
@@ -111,6 +112,12 @@ class Tabletop(ResetFreeEnv):
     def eval_goals(self, rng: jax.Array) -> jax.Array:
         index = jax.random.randint(rng, (), 0, len(GOAL_STATES))
         return jnp.asarray(GOAL_STATES)[index]
+
+    def evaluation_goals(self, rng: jax.Array, num_episodes: int) -> jax.Array:
+        """The four goals in turn (the paper: "four goal locations are sampled in turn"; EARL's
+        get_next_goal cycles its list), from the first, so 10 episodes see them 3, 3, 2, 2 times."""
+        del rng
+        return jnp.asarray(GOAL_STATES)[jnp.arange(num_episodes) % len(GOAL_STATES)]
 
     def initial_states(self, rng: jax.Array) -> jax.Array:
         del rng  # a single fixed initial state, as in EARL

@@ -30,6 +30,8 @@ def test_observations_goals_and_initial_states_are_the_task_vectors_in_unit_box_
     assert not np.allclose(stepped.obs, raw_stepped.obs)  # the units did change
     np.testing.assert_allclose(env.denormalise(env.eval_goals(key)), inner.eval_goals(key), atol=1e-5)
     np.testing.assert_allclose(env.denormalise(env.initial_states(key)), inner.initial_states(key), atol=1e-5)
+    np.testing.assert_allclose(env.denormalise(env.evaluation_goals(key, 6)), inner.evaluation_goals(key, 6),
+                               atol=1e-5)
     unit_low, unit_high = env.observation_bounds
     assert np.all(unit_low == 0) and np.all(unit_high == 1)
     assert env.goal_dims == inner.goal_dims and env.eval_episode_length == inner.eval_episode_length

@@ -131,3 +131,8 @@ def test_pipeline_state_holds_qpos_and_kinematics():
     np.testing.assert_allclose(np.asarray(data.qpos), [-0.6, 0.3, 2.5, 0.0], atol=1e-5)
     mug = env_.mj_model.body("mug").id
     np.testing.assert_allclose(np.asarray(data.xpos[mug, 0:2]), [2.5, 0.0], atol=1e-5)
+
+
+def test_an_evaluation_takes_the_four_goals_in_turn():
+    goals = np.asarray(env().evaluation_goals(jax.random.PRNGKey(0), 10))
+    np.testing.assert_array_equal(goals, np.asarray(tabletop.GOAL_STATES)[[0, 1, 2, 3, 0, 1, 2, 3, 0, 1]])

@@ -5,9 +5,10 @@
     fraction, histogram = visitation(env, replay, bins=50)
 
 Evaluation follows PEG (agent.md 7.1): every episode starts from a fresh reset (the task's initial-state
-distribution) with a goal from `eval_goals`; the goal-conditioned policy acts deterministically (its mode),
-the latent is filtered from is_first; success is the task's `success` at ANY step of the episode (PEG's
-max over the episode), and we also report success at the last step and the final distance to the goal.
+distribution) with a goal from the task's `evaluation_goals` (independent eval_goals draws, or the task's
+order); the goal-conditioned policy acts deterministically (its mode), the latent is filtered from
+is_first; success is the task's `success` at ANY step of the episode (PEG's max over the episode), and we
+also report success at the last step and the final distance to the goal.
 Episodes are vmapped; the env steps run inside one lax.scan.
 """
 
@@ -40,7 +41,7 @@ def evaluate_policy(env, agent, agent_state, key: jax.Array, num_episodes: int,
     length = episode_length or env.eval_episode_length
     key_reset, key_goal, key_act = jax.random.split(key, 3)
     env_states = jax.vmap(env.reset)(jax.random.split(key_reset, num_episodes))
-    goals = jax.vmap(env.eval_goals)(jax.random.split(key_goal, num_episodes))
+    goals = env.evaluation_goals(key_goal, num_episodes)
     contexts = agent.goal_context(agent_state, goals)  # the goals are fixed for the episode: encode them once
     act = jax.vmap(agent.act, in_axes=(None, 0, 0, 0, 0, 0, None))
     mode = MODE_GOAL | MODE_DETERMINISTIC
