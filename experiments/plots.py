@@ -168,8 +168,8 @@ def back_starts_figure(task, groups, geometry: TaskGeometry):
         density = np.concatenate([rest_density(t, radius) for t in trajectories])
         keep = np.isfinite(points).all(axis=1)
         order = np.argsort(density[keep])  # the longest rests drawn on top
-        geometry.draw(ax)
         ax.scatter(*points[keep][order].T, c=density[keep][order], cmap="Reds", vmin=0, vmax=1, s=4)
+        geometry.draw(ax)  # after the points, so that the start and goal markers stay visible
         seeds = f"{len(per_seed)} seed{'s' * (len(per_seed) > 1)}"
         ax.set_title(f"{agent}: {len(trajectories)} successful back chunks\n(100 steps before each, "
                      f"{seeds})", fontsize=9)
