@@ -19,6 +19,9 @@ and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced ev
 agent, mean +- standard error over seeds, seed count, and the commits of the code that wrote the runs.
 With --window START:STOP also <task>_window.csv / .md: each seed's mean success over its evaluations in
 that range, mean +- standard error over seeds (agents whose every seed has evaluated at STOP).
+Across tasks, where morefree and at least one ablation variant (rf_peg, mf_task_only, mf_no_bfge,
+mf_no_imag) ran: ablation.png / .svg / .csv / .md, the paper's ablation figure (final success normalised by
+MoReFree's, mean over tasks; experiments/ablation_summary.py says how).
 Every file is stamped with those commits and the commit that drew it. A run dir that cannot be used is
 skipped with one line saying why; finding no run is a one-line error (exit 2).
 """
@@ -31,7 +34,7 @@ import sys
 
 import numpy as np
 
-from experiments import run_groups
+from experiments import ablation_summary, run_groups
 from experiments.run_groups import NoRunsError
 from morefree_jax.provenance import code_version
 
@@ -214,6 +217,21 @@ def write_window(task, groups, out, window, stamp_for) -> list[pathlib.Path]:
     return paths
 
 
+def write_ablation(groups, out, stamp_for) -> list[pathlib.Path]:
+    """ablation.{png,svg,csv,md} when some task has morefree and an ablation variant (ablation_summary)."""
+    rows = ablation_summary.task_rows(groups)
+    if not rows:
+        return []
+    summary = ablation_summary.summary_rows(rows)
+    commits = sorted({c for row in rows for c in row["commits"].split()})
+    stamp = stamp_for(commits)
+    paths = save(ablation_summary.figure(rows, summary, _figure), out, "ablation", stamp)
+    paths += [out / "ablation.csv", out / "ablation.md"]
+    paths[2].write_text(run_groups.csv_text(rows, ablation_summary.TASK_COLUMNS))
+    paths[3].write_text(ablation_summary.markdown(rows, summary) + f"\n{stamp}\n")
+    return paths
+
+
 def _parse(argv):
     parser = argparse.ArgumentParser(prog="python -m experiments.plots", description=__doc__.splitlines()[0])
     parser.add_argument("runs", help="directory searched for run dirs (e.g. runs)")
@@ -260,6 +278,7 @@ def main(argv: list[str]) -> int:
         written += write_table(task, groups, out, args.marks, stamp_for)
         if args.window:
             written += write_window(task, groups, out, args.window, stamp_for)
+    written += write_ablation(groups, out, stamp_for)
     for (task, agent), group in sorted(groups.items()):
         print(f"{task} {agent}: seeds {','.join(str(r.seed) for r in group)}")
     print(f"wrote {len(written)} files to {out}")

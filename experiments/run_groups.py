@@ -188,7 +188,7 @@ def window_rows(groups, start: int, stop: int) -> list[dict]:
     return rows
 
 
-def _with_error(mean: float, stderr: float) -> str:
+def with_error(mean: float, stderr: float) -> str:
     return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
 
 
@@ -197,8 +197,8 @@ def markdown_table(rows: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | {row['step']:,} | "
-                     f"{_with_error(row['success_mean'], row['success_stderr'])} | "
-                     f"{_with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
                      f"{row['task_relevant_mean']:.3f} | {row['commits']} |")
     return "\n".join(lines) + "\n"
 
@@ -209,8 +209,8 @@ def window_markdown(rows: list[dict]) -> str:
     for row in rows:
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "
                      f"{row['start']:,}-{row['stop']:,} | {row['evaluations']} | "
-                     f"{_with_error(row['success_mean'], row['success_stderr'])} | "
-                     f"{_with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
                      f"{row['commits']} |")
     return "\n".join(lines) + "\n"
 

@@ -84,6 +84,26 @@ def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     table = (out / "point_umaze_results.md").read_text()
     assert "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 |" in table and "runs: aaaaaaa" in table
     assert b"runs: aaaaaaa" in (out / "point_umaze_success.svg").read_bytes()
+    assert {"ablation.png", "ablation.svg", "ablation.csv", "ablation.md"} <= names  # morefree and rf_peg ran
+
+
+def test_ablation_normalises_each_variants_final_success_by_morefrees_on_the_same_task(runs, tmp_path):
+    write_run(runs / "ant" / "morefree" / "seed0", "ant", "morefree", 0, [0.0, 0.4, 0.8])
+    write_run(runs / "ant" / "mf_no_bfge" / "seed0", "ant", "mf_no_bfge", 0, [0.0, 0.2, 0.2])
+    write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0.0, 0.0, 0.5])  # alone
+    out = tmp_path / "results"
+    assert plots.main([str(runs), "--out", str(out)]) == 0
+    with open(out / "ablation.csv") as file:
+        rows = {(r["task"], r["agent"]): r for r in csv.DictReader(file)}
+    assert sorted(rows) == [("ant", "mf_no_bfge"), ("ant", "morefree"), ("point_umaze", "morefree"),
+                            ("point_umaze", "rf_peg")]
+    # The last quarter before 7,500 holds only the 7,500 evaluation: morefree 0.8 (mean of 1.0, 0.8, 0.6).
+    assert rows["point_umaze", "rf_peg"]["evaluations"] == "1"
+    assert float(rows["point_umaze", "rf_peg"]["normalised"]) == pytest.approx(0.3 / 0.8, abs=1e-4)
+    assert float(rows["ant", "mf_no_bfge"]["normalised"]) == pytest.approx(0.25, abs=1e-4)
+    table = (out / "ablation.md").read_text()
+    assert "| morefree | 2 | 1.00 ± 0.00 |" in table and "| rf_peg | 1 | 0.38 |" in table
+    assert "| mf_no_bfge | 1 | 0.25 |" in table
 
 
 def test_default_marks_are_evaluated_steps(runs):
