@@ -20,6 +20,11 @@ import numpy as np
 from brax.envs.base import State, Wrapper
 
 
+def in_task_units(env, vectors: jax.Array) -> jax.Array:
+    """Observation or goal vectors of `env` in the task's own units (de-normalised if env normalises)."""
+    return env.denormalise(vectors) if isinstance(env, NormalisedObservations) else vectors
+
+
 class NormalisedObservations(Wrapper):
     """A reset-free task whose observations are (obs - low) / (high - low) over its observation_bounds."""
 

@@ -47,6 +47,7 @@ def main(argv: list[str]) -> int:
         args = parse(argv)
         import jax
 
+        from envs_mjx.normalise import in_task_units
         from morefree_jax.evaluate import evaluate_policy, render_episode, success_per_goal, write_video
         from morefree_jax.loop import restore_run
 
@@ -61,7 +62,8 @@ def main(argv: list[str]) -> int:
     names = f"{run.config.run.agent} on {run.config.run.env}"
     print(f"{names}, checkpoint step {step}, {args['episodes']} episodes")
     print(f"{'goal':>24} {'episodes':>8} {'success':>8} {'final':>8} {'distance':>9}")
-    for row in success_per_goal(result, run.env.goal_dims):
+    task_goals = result._replace(goals=in_task_units(run.env, result.goals))  # printed in the task's units
+    for row in success_per_goal(task_goals, run.env.goal_dims):
         goal = ", ".join(f"{g:.2f}" for g in row["goal"])
         print(f"{goal:>24} {row['episodes']:>8} {row['success']:>8.2f} {row['final_success']:>8.2f} "
               f"{row['final_distance']:>9.3f}")

@@ -8,7 +8,7 @@ import pytest
 from conftest import cached_env
 
 import envs_mjx
-from envs_mjx.normalise import NormalisedObservations
+from envs_mjx.normalise import NormalisedObservations, in_task_units
 from morefree_jax.checkpoint import config_differences
 from morefree_jax.config_run import config_to_dict, resolve_config
 from morefree_jax.run_fns import make_run_fns
@@ -35,6 +35,9 @@ def test_observations_goals_and_initial_states_are_the_task_vectors_in_unit_box_
     unit_low, unit_high = env.observation_bounds
     assert np.all(unit_low == 0) and np.all(unit_high == 1)
     assert env.goal_dims == inner.goal_dims and env.eval_episode_length == inner.eval_episode_length
+    goals = env.evaluation_goals(key, 4)
+    np.testing.assert_allclose(in_task_units(env, goals), inner.evaluation_goals(key, 4), atol=1e-5)
+    assert in_task_units(inner, goals) is goals
 
 
 def test_task_measures_are_taken_in_the_task_units():
