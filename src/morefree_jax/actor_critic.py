@@ -54,7 +54,7 @@ class Imagined(NamedTuple):
 
 def make_actor_critic(cfg: ActorCriticConfig, action_size: int, use_context: bool) -> ActorCritic:
     return ActorCritic(
-        actor=ContextMLP(cfg.actor_layers, 2 * action_size, use_context),
+        actor=ContextMLP(cfg.actor_layers, 2 * action_size, use_context, head_fan_out=action_size),
         critic=ContextMLP(cfg.critic_layers, 1, use_context),
         config=cfg,
         actor_opt=make_optimizer(cfg.actor_opt),
@@ -66,8 +66,9 @@ def init_actor_critic(ac: ActorCritic, key, feat_size: int, context_size: int) -
     key_actor, key_critic = jax.random.split(key)
     feat = jnp.zeros((1, feat_size))
     context = jnp.zeros((1, context_size)) if ac.actor.use_context else None
-    actor_params = ac.actor.init(key_actor, feat, context)
-    critic_params = ac.critic.init(key_critic, feat, context)
+    input_size = feat_size + (context_size if ac.actor.use_context else 0)
+    actor_params = ac.actor.clone(input_size=input_size).init(key_actor, feat, context)
+    critic_params = ac.critic.clone(input_size=input_size).init(key_critic, feat, context)
     return (init_net_state(actor_params, ac.actor_opt),
             init_net_state(critic_params, ac.critic_opt, with_target=True))
 

@@ -89,12 +89,12 @@ LATER_SECTIONS = ("baseline", "baseline.ibc", "baseline.discriminator")
 
 def later_keys() -> dict:
     """Keys added to an existing section after run dirs existed, with the value a run that predates them
-    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), and
-    the observation normalisation (runs before it saw raw observations)."""
+    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), the
+    observation normalisation (runs before it saw raw observations) and the GRU bias (they had none)."""
     from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
 
     sac_options = {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
-    return {**sac_options, "agent.normalise_observations": False}
+    return {**sac_options, "agent.normalise_observations": False, "agent.wm.gru_bias": False}
 
 
 def _has_section(tree: dict, dotted: str) -> bool:
@@ -105,15 +105,20 @@ def _has_section(tree: dict, dotted: str) -> bool:
     return True
 
 
+def _with_held_defaults(stored: dict, current_flat: dict) -> dict:
+    """The stored config, flat, with the value a later_keys() key held where it predates the key."""
+    held_defaults = {key: value for key, value in _flatten_dict(_as_json(later_keys())).items()
+                     if key in current_flat}
+    return {**held_defaults, **_flatten_dict(_as_json(stored))}
+
+
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose values differ between two nested config dicts (missing on one side counts, except
     a LATER_SECTIONS section the stored config lacks and a later_keys() key it lacks, which held its
     default, where the current config has it). Both are compared in their JSON form (tuples and lists are
     equal)."""
     current_flat = _flatten_dict(_as_json(current))
-    held_defaults = {key: value for key, value in _flatten_dict(_as_json(later_keys())).items()
-                     if key in current_flat}
-    stored_flat = {**held_defaults, **_flatten_dict(_as_json(stored))}
+    stored_flat = _with_held_defaults(stored, current_flat)
     later = tuple(f"{section}." for section in LATER_SECTIONS if not _has_section(stored, section))
     stored_flat = {key: value for key, value in stored_flat.items() if not key.startswith(later)}
     current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}
@@ -126,7 +131,8 @@ def refuse_config_change(stored: dict, current: dict, where: str, ignore: tuple[
     """Raises ConfigMismatchError naming the differing keys (with both values) if the configs differ."""
     differing = config_differences(stored, current, ignore)
     if differing:
-        stored_flat, current_flat = _flatten_dict(_as_json(stored)), _flatten_dict(_as_json(current))
+        current_flat = _flatten_dict(_as_json(current))
+        stored_flat = _with_held_defaults(stored, current_flat)
         absent = "<absent>"
         shown = ", ".join(
             f"{k}: {stored_flat.get(k, absent)!r} -> {current_flat.get(k, absent)!r}" for k in differing[:8]

@@ -58,6 +58,7 @@ class WorldModelConfig:
     kl_scale: float = 1.0
     opt: OptimizerConfig = OptimizerConfig(lr=3e-4)
     unroll: int = 1  # lax.scan unroll of observe (performance only; bench_core unrolls to count FLOPs)
+    gru_bias: bool = True  # DreamerV2's GRU input layer has a bias; run dirs made before this key had none
 
     def __post_init__(self):
         _positive(self, "deter", "hidden", "stoch", "min_std", "encoder_layers", "decoder_layers",

@@ -33,7 +33,7 @@ def make_distance(cfg: DistanceConfig) -> Distance:
 
 def init_distance(dist: Distance, key: jax.Array, embed_size: int) -> NetState:
     x = jnp.zeros((1, embed_size))
-    return init_net_state(dist.net.init(key, x, x), dist.optimizer)
+    return init_net_state(dist.net.clone(input_size=2 * embed_size).init(key, x, x), dist.optimizer)
 
 
 def goal_projection(dist: Distance, params, goal_embed: jax.Array) -> jax.Array:

@@ -5,6 +5,11 @@ so the ensemble is a single batched computation. Input concat(feat_t, action_t) 
 DreamerV2 convention) predicts stoch_{t+1} of the posterior (disag_offset 1); loss = sum over members of
 the mean Normal(., 1) NLL (constant dropped); inputs and targets are stop-gradient. The intrinsic reward is
 the std over members of the predicted means, averaged over the stoch dimensions.
+
+The paper's appendix describes Plan2Explore as published: the variance over members of f(s_t), without the
+action. The std and the action input are PEG's code (agent.md section 3), which the paper says MoReFree
+extends with every other hyperparameter kept; where its prose summarises earlier methods we follow the code
+it ran, and the README's "Where this differs" table says so.
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@ the math of PEG/DreamerV2 and remove redundant work:
   posterior on deter+embed) has its first layer split into Dense(x) + Dense(context, no bias): the same
   function class, but the context projection is computed once per goal / per embedding instead of at every
   imagined step.
+- Every kernel starts from Keras' default, Glorot-uniform, with which DreamerV2/PEG build every Dense layer
+  (Flax's default, LeCun-normal, draws a first layer on 6 raw inputs about 6x wider); a layer split in two
+  above keeps the limit of the one layer it replaces (`glorot_uniform`'s fan_in).
 - The RSSM exposes its pieces (`deter_step`, `prior_stats`, `posterior_stats`) so sequence code can run
   only the recurrent part inside `lax.scan` and the rest batched over all time steps.
 """
@@ -80,6 +83,24 @@ def gaussian_kl(lhs: Gaussian, rhs: Gaussian) -> jax.Array:
     return 0.5 * jnp.sum(var_ratio + mahalanobis - 1.0 - jnp.log(var_ratio), -1)
 
 
+def glorot_uniform(fan_in: int | None = None, fan_out: int | None = None):
+    """Keras' default kernel initializer: U(+-sqrt(6 / (fan_in + fan_out))), both taken from the kernel's
+    shape unless given: a layer split in two here (ContextMLP, the posterior) passes the fan-in of the
+    concatenated input, the actor's merged mean-and-std head the fan-out of each of PEG's two heads."""
+
+    def init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
+        limit = (6.0 / ((fan_in or shape[0]) + (fan_out or shape[-1]))) ** 0.5
+        return jax.random.uniform(key, shape, dtype, -limit, limit)
+
+    return init
+
+
+def dense(features: int, use_bias: bool = True, fan_in: int | None = None,
+          fan_out: int | None = None) -> nn.Dense:
+    """A Dense layer as DreamerV2 builds it: Glorot-uniform kernel, zero bias."""
+    return nn.Dense(features, use_bias=use_bias, kernel_init=glorot_uniform(fan_in, fan_out))
+
+
 class MLP(nn.Module):
     """ELU MLP; optional linear output layer."""
 
@@ -89,9 +110,9 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.layers:
-            x = elu(nn.Dense(width)(x))
+            x = elu(dense(width)(x))
         if self.out is not None:
-            x = nn.Dense(self.out)(x)
+            x = dense(self.out)(x)
         return x
 
 
@@ -100,18 +121,22 @@ class ContextMLP(nn.Module):
 
     `project(context)` once, then `from_projection(x, projection)` for every x that shares the context.
     With `use_context=False` it is a plain MLP on x (the exploration actor and critic).
+    input_size: the size of concat(x, context), for the first layer's initial scale (init_* sets it).
+    head_fan_out: the initial scale's fan-out of the output layer, where it stands for several (the actor).
     """
 
     layers: Sequence[int]
     out: int
     use_context: bool = True
+    input_size: int | None = None
+    head_fan_out: int | None = None
 
     def setup(self):
-        self.first = nn.Dense(self.layers[0])
+        self.first = dense(self.layers[0], fan_in=self.input_size)
         if self.use_context:
-            self.context = nn.Dense(self.layers[0], use_bias=False)
-        self.hidden = [nn.Dense(width) for width in self.layers[1:]]
-        self.head = nn.Dense(self.out)
+            self.context = dense(self.layers[0], use_bias=False, fan_in=self.input_size)
+        self.hidden = [dense(width) for width in self.layers[1:]]
+        self.head = dense(self.out, fan_out=self.head_fan_out)
 
     def project(self, context: jax.Array) -> jax.Array:
         return self.context(context)
@@ -131,13 +156,16 @@ class ContextMLP(nn.Module):
 
 
 class LayerNormGRU(nn.Module):
-    """GRU with LayerNorm over the 3*deter pre-activations and update bias -1 (DreamerV2)."""
+    """GRU with LayerNorm over the 3*deter pre-activations and update bias -1 (DreamerV2). DreamerV2's input
+    layer has a bias (`use_bias=norm is not None`, true for its boolean norm); use_bias=False builds the
+    layer of run dirs made before that was found (config `wm.gru_bias`)."""
 
     size: int
+    use_bias: bool = True
 
     @nn.compact
     def __call__(self, x: jax.Array, state: jax.Array) -> jax.Array:
-        parts = nn.Dense(3 * self.size, use_bias=False)(jnp.concatenate([x, state], -1))
+        parts = dense(3 * self.size, use_bias=self.use_bias)(jnp.concatenate([x, state], -1))
         parts = nn.LayerNorm(epsilon=1e-3)(parts)
         reset, cand, update = jnp.split(parts, 3, -1)
         cand = jnp.tanh(jax.nn.sigmoid(reset) * cand)
@@ -146,21 +174,26 @@ class LayerNormGRU(nn.Module):
 
 
 class RSSM(nn.Module):
-    """Recurrent state-space model with a Gaussian stochastic state (PEG: deter 200, hidden 200, stoch 50)."""
+    """Recurrent state-space model with a Gaussian stochastic state (PEG: deter 200, hidden 200, stoch 50).
+    embed_size: the encoder's output size, for the initial scale of the posterior's split first layer.
+    gru_bias: the GRU input layer's bias (LayerNormGRU)."""
 
     deter: int
     hidden: int
     stoch: int
     min_std: float = 0.1
+    embed_size: int | None = None
+    gru_bias: bool = True
 
     def setup(self):
-        self.img_in = nn.Dense(self.hidden)
-        self.gru = LayerNormGRU(self.deter)
-        self.img_out = nn.Dense(self.hidden)
-        self.img_stats = nn.Dense(2 * self.stoch)
-        self.obs_deter = nn.Dense(self.hidden)
-        self.obs_embed = nn.Dense(self.hidden, use_bias=False)
-        self.obs_stats = nn.Dense(2 * self.stoch)
+        self.img_in = dense(self.hidden)
+        self.gru = LayerNormGRU(self.deter, self.gru_bias)
+        self.img_out = dense(self.hidden)
+        self.img_stats = dense(2 * self.stoch)
+        posterior_fan_in = self.deter + self.embed_size if self.embed_size else None
+        self.obs_deter = dense(self.hidden, fan_in=posterior_fan_in)
+        self.obs_embed = dense(self.hidden, use_bias=False, fan_in=posterior_fan_in)
+        self.obs_stats = dense(2 * self.stoch)
 
     def _stats(self, raw: jax.Array) -> Gaussian:
         mean, std = jnp.split(raw, 2, -1)

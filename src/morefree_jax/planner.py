@@ -173,6 +173,8 @@ def peg_score(
     explore_returns (H', G): TD(lambda) returns of those rewards bootstrapped with the explore target critic.
     Sums the returns (PEG `cost_use_p2e_value: True`) or, with use_value=False, the rewards, over the last
     `use_last_steps` steps (PEG `final_step_cost`), or over all steps when None. Returns (G,).
+    The paper's appendix describes the score as the exploration value of the rollout's last state; this is
+    PEG's code, which MoReFree extends (README, "Where this differs").
     """
     values = explore_returns if use_value else explore_reward
     if use_last_steps is not None:

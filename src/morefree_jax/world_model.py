@@ -65,7 +65,7 @@ class WorldModel(NamedTuple):
 def make_world_model(cfg: WorldModelConfig, obs_size: int) -> WorldModel:
     return WorldModel(
         encoder=MLP(cfg.encoder_layers),
-        rssm=RSSM(cfg.deter, cfg.hidden, cfg.stoch, cfg.min_std),
+        rssm=RSSM(cfg.deter, cfg.hidden, cfg.stoch, cfg.min_std, cfg.encoder_layers[-1], cfg.gru_bias),
         decoder=MLP(cfg.decoder_layers, out=obs_size),
         embed_head=MLP(cfg.embed_head_layers, out=cfg.encoder_layers[-1]),
         config=cfg,
