@@ -104,3 +104,8 @@ def test_the_gru_input_layer_has_dreamers_bias_and_old_run_dirs_keep_theirs():
     old = config_to_dict(resolve_config(["env=point_umaze", "agent=morefree", "wm.gru_bias=false"],
                                         envs_mjx.ALL_ENVS))
     assert config_differences(stored, old) == []
+    # a model-free run reads no world-model key: its run dirs from before resume without it
+    sac = config_to_dict(resolve_config(["env=point_umaze", "agent=oracle_sac"], envs_mjx.ALL_ENVS))
+    stored = {**sac, "agent": {**sac["agent"], "wm": {k: v for k, v in sac["agent"]["wm"].items()
+                                                      if k != "gru_bias"}}}
+    assert config_differences(stored, sac) == []

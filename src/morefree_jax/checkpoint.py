@@ -106,9 +106,15 @@ def _has_section(tree: dict, dotted: str) -> bool:
 
 
 def _with_held_defaults(stored: dict, current_flat: dict) -> dict:
-    """The stored config, flat, with the value a later_keys() key held where it predates the key."""
+    """The stored config, flat, with the value a later_keys() key held where it predates the key. A
+    model-free run reads no `agent.` key (the world-model agents' section): such a key holds the current
+    value there."""
+    from morefree_jax.baselines.config import MODEL_FREE_AGENTS
+
     held_defaults = {key: value for key, value in _flatten_dict(_as_json(later_keys())).items()
                      if key in current_flat}
+    if stored.get("run", {}).get("agent") in MODEL_FREE_AGENTS:
+        held_defaults.update({key: current_flat[key] for key in held_defaults if key.startswith("agent.")})
     return {**held_defaults, **_flatten_dict(_as_json(stored))}
 
 
