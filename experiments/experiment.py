@@ -60,7 +60,23 @@ def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
     settings["parallel"] = _positive_int("parallel", own.get("parallel", str(os.cpu_count() or 1)))
     if settings["steps"] is not None:
         _positive_int("steps", settings["steps"])
+    _check_train_arguments(settings, passed)
     return settings, passed
+
+
+def _check_train_arguments(settings: dict, passed: list[str]) -> None:
+    """Resolves every agent's train arguments here, so that bad input is one line before any agent starts
+    (not an exit 2 per agent, its message in that agent's train.log)."""
+    import envs_mjx
+    from experiments.train import split_seeds
+    from morefree_jax.config_run import resolve_config
+
+    for agent in settings["agents"]:
+        _, arguments = split_seeds(train_command(settings, agent, passed)[3:])
+        try:
+            resolve_config(arguments, envs_mjx.ALL_ENVS)
+        except ValueError as error:  # ConfigError is one; the config constructors' checks are others
+            raise ConfigError(f"{agent}: {str(error).splitlines()[0]}") from None
 
 
 def _positive_int(name: str, text: str) -> int:

@@ -3,11 +3,12 @@
     python -m experiments.train env=point_umaze agent=morefree preset=cpu seed=0 steps=200000 [key=value ...]
     python -m experiments.train env=point_umaze seeds=0,1,2     # three seeds in one program, a run dir each
 
-Keys: env, agent (a variant: morefree, rf_peg, peg, dreamer_gc, mf_no_bfge, mf_no_imag, mf_task_only),
-preset (paper, cpu, debug), seed, steps; any dotted config key (wm.deter=64, planner.iterations=3,
-schedule.alpha=0.3, run.eval_every=5000, or run keys without "run.": eval_every=5000). The run dir is
-runs/<env>/<agent>/seed<seed> unless run_dir=... is given (with seeds=: <run_dir>/seed<k>). Bad input
-exits with code 2 and one line.
+Keys: env, agent (a world-model variant: morefree, rf_peg, peg, dreamer_gc, mf_no_bfge, mf_no_imag,
+mf_task_only; or a model-free baseline: oracle_sac, r3l, medal, ibc), preset (paper, cpu, debug),
+seed, steps; any dotted config key (wm.deter=64, planner.iterations=3, schedule.alpha=0.3,
+run.eval_every=5000, or run keys without "run.": eval_every=5000). The run dir is
+runs/<env>/<agent>/seed<seed> unless run_dir=... is given (with seeds=: <run_dir>/seed<k>). Bad input exits
+with code 2 and one line.
 """
 
 from __future__ import annotations

@@ -43,6 +43,11 @@ def test_bad_arguments_are_one_line_errors():
         experiment.parse_args(["task=point_umaze", "steps=-5"])
     with pytest.raises(ConfigError, match="task is given twice"):
         experiment.parse_args(["task=point_umaze", "task=tabletop"])
+    # the train commands' own arguments are checked before any agent starts
+    with pytest.raises(ConfigError, match=r"run.preset is given twice \(preset=cpu and preset=paper\)"):
+        experiment.parse_args(["task=point_umaze", "agents=morefree", "preset=cpu", "preset=paper"])
+    with pytest.raises(ConfigError, match="oracle_sac: .*deter must be > 0"):
+        experiment.parse_args(["task=point_umaze", "agents=oracle_sac", "wm.deter=0"])
 
 
 def test_other_arguments_go_to_every_train_command():

@@ -96,8 +96,8 @@ def acting_state(state: AgentState) -> AgentState:
     None, as are the decoder and embed head (`goal_distance` needs the full state).
 
     `act` gives the same result on it. A jitted call flattens its arguments on every dispatch, so a
-    Python-side acting loop should pass this (42 leaves at `cpu`) rather than the whole state with its
-    optimiser moments (326 leaves).
+    Python-side acting loop should pass this rather than the whole state with its optimiser moments (about
+    an eighth of the leaves; the README gives the counts).
     """
     def params_only(net: NetState) -> NetState:
         return NetState(net.params, None)
