@@ -72,7 +72,7 @@ def _check_train_arguments(settings: dict, passed: list[str]) -> None:
     from morefree_jax.config_run import resolve_config
 
     for agent in settings["agents"]:
-        _, arguments = split_seeds(train_command(settings, agent, passed)[3:])
+        _, arguments = split_seeds(train_arguments(settings, agent, passed))
         try:
             resolve_config(arguments, envs_mjx.ALL_ENVS)
         except ValueError as error:  # ConfigError is one; the config constructors' checks are others
@@ -89,11 +89,14 @@ def _positive_int(name: str, text: str) -> int:
     return value
 
 
-def train_command(settings: dict, agent: str, passed: list[str]) -> list[str]:
+def train_arguments(settings: dict, agent: str, passed: list[str]) -> list[str]:
     seeds = ",".join(map(str, settings["seeds"]))
     steps = [f"steps={settings['steps']}"] if settings["steps"] else []
-    return [sys.executable, "-m", "experiments.train", f"env={settings['task']}", f"agent={agent}",
-            f"seeds={seeds}", *steps, *passed]
+    return [f"env={settings['task']}", f"agent={agent}", f"seeds={seeds}", *steps, *passed]
+
+
+def train_command(settings: dict, agent: str, passed: list[str]) -> list[str]:
+    return [sys.executable, "-m", "experiments.train", *train_arguments(settings, agent, passed)]
 
 
 def agent_dir(settings: dict, agent: str) -> pathlib.Path:
