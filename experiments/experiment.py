@@ -11,8 +11,11 @@ train command. While they run, one progress line per agent is printed every 60 s
 command resumes every agent from its checkpoints (a finished agent returns at once). When all have
 finished, `experiments.plots runs/<task> --out <out>` draws the task's figures and table; `out` defaults to
 runs/<task>/results, beside the runs and outside git, so that a later run from the same checkout is not
-stamped `+dirty` by redrawn tracked figures (`make plots OUT=results` updates the repository's). Ctrl-C stops
-every agent after its current chunk (each saves a checkpoint). Bad input: one line, exit 2.
+stamped `+dirty` by redrawn tracked figures (`make plots OUT=results` updates the repository's).
+Ctrl-C (or `kill -INT` / `kill` of this process, also when it runs in the background) stops every agent
+after its current chunk (each saves a checkpoint) and starts no further agent; a second one quits the
+agents at once (their last checkpoints stay). A stopped experiment draws no figures and exits 130. Bad
+input: one line, exit 2.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import signal
 import subprocess
 import sys
 import time
+from typing import NamedTuple
 
 from experiments import plots
 from experiments.run_groups import read_run
@@ -31,6 +35,7 @@ from morefree_jax.seeds import parse_seeds
 
 OWN_KEYS = ("task", "agents", "seeds", "steps", "parallel", "out")
 PROGRESS_EVERY_S = 60.0
+STOPPED_EXIT = 130  # the shell's code for a run ended by Ctrl-C
 
 
 def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
@@ -132,19 +137,45 @@ def _start(settings, agent, passed, core):
                                 preexec_fn=pin, start_new_session=True)
 
 
-def run_agents(settings: dict, passed: list[str]) -> dict[str, int]:
-    """Runs every agent (`parallel` at a time); {agent: exit code}."""
+def _raise_stop(signum, frame):
+    raise KeyboardInterrupt  # SIGTERM too: one way out of the loop below
+
+
+def _signal_all(processes) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+
+
+def _stop_on_signals() -> dict:
+    """Installs _raise_stop for SIGINT and SIGTERM -> the previous handlers. Explicitly, because a shell
+    starts a background command (`nohup make experiment ... &`) with SIGINT ignored, and Python keeps an
+    ignored SIGINT ignored: `kill -INT` would then do nothing, and `kill` would leave the agents running."""
+    return {signum: signal.signal(signum, _raise_stop) for signum in (signal.SIGINT, signal.SIGTERM)}
+
+
+class Outcome(NamedTuple):
+    codes: dict[str, int]  # {agent: exit code} of the agents that ran
+    stopped: bool  # Ctrl-C or SIGTERM stopped the experiment
+    unstarted: list[str]  # the agents the stop kept from starting
+
+
+def run_agents(settings: dict, passed: list[str]) -> Outcome:
+    """Runs every agent (`parallel` at a time); a stop signal stops the running ones after their chunk and
+    starts no more."""
     cores = sorted(os.sched_getaffinity(0))
     pending, running, started, codes = list(settings["agents"]), {}, {}, {}
     last_print = -float("inf")
+    previous = _stop_on_signals()
     try:
         while pending or running:
             free = [c for c in cores if c not in {core for _, core in running.values()}]
             while pending and len(running) < settings["parallel"]:
                 core = free.pop(0) if settings["parallel"] > 1 and free else None
-                agent = pending.pop(0)
+                agent = pending[0]
                 running[agent] = (_start(settings, agent, passed, core), core)
                 started[agent] = running[agent][0]
+                pending.pop(0)  # only now: a stop signal during the start leaves the agent in one list
             for agent, (process, _) in list(running.items()):
                 if process.poll() is not None:
                     codes[agent] = process.returncode
@@ -155,12 +186,19 @@ def run_agents(settings: dict, passed: list[str]) -> dict[str, int]:
                     print(progress_line(settings, agent, started.get(agent)), flush=True)
             time.sleep(1.0)
     except KeyboardInterrupt:
-        print("stopping every agent after its current chunk (each saves a checkpoint)", flush=True)
-        for process, _ in running.values():
-            process.send_signal(signal.SIGINT)
+        print("stopping every agent after its current chunk (each saves a checkpoint; Ctrl-C again to quit "
+              "now)", flush=True)
+        processes = [process for process, _ in running.values()]
+        _signal_all(processes)
+        for signum in previous:  # a second signal: the agents' own "quit now"; the waits below go on
+            signal.signal(signum, lambda *_: _signal_all(processes))
         for agent, (process, _) in running.items():
             codes[agent] = process.wait()
-    return codes
+        return Outcome(codes, True, pending)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return Outcome(codes, False, [])
 
 
 def main(argv: list[str]) -> int:
@@ -172,10 +210,14 @@ def main(argv: list[str]) -> int:
     except ConfigError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    codes = run_agents(settings, passed)
-    failed = {agent: code for agent, code in codes.items() if code != 0}
+    outcome = run_agents(settings, passed)
+    failed = {agent: code for agent, code in outcome.codes.items() if code != 0}
     for agent, code in failed.items():
         print(f"{agent} exited with {code}; see {agent_dir(settings, agent) / 'train.log'}", file=sys.stderr)
+    if outcome.stopped:
+        unstarted = f" (not started: {', '.join(outcome.unstarted)})" if outcome.unstarted else ""
+        print(f"stopped{unstarted}; re-run the same command to resume; no figures drawn", file=sys.stderr)
+        return STOPPED_EXIT
     plotted = plots.main([str(pathlib.Path("runs") / settings["task"]), "--out", settings["out"],
                           "--task", settings["task"]])
     return 1 if failed else plotted

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 
@@ -111,3 +113,50 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     drawn = {p.name for p in figures.iterdir()}
     assert not (tmp_path / "results").exists()
     assert {"tabletop_success.png", "tabletop_results.md"} <= drawn
+
+
+# Waits for SIGINT as experiments.train does (then "saves" and exits 0); writes where it is.
+WAITING_TRAIN = textwrap.dedent("""
+    import pathlib, signal, sys, time
+    agent = dict(arg.split("=", 1) for arg in sys.argv[1:])["agent"]
+    marker = pathlib.Path("runs") / f"{agent}.state"
+    def stop(signum, frame):
+        marker.write_text("stopped"); sys.exit(0)
+    signal.signal(signal.SIGINT, stop)
+    marker.write_text("running")
+    time.sleep(60)
+    marker.write_text("finished unstopped")
+""")
+
+# experiments.experiment with the waiting stand-in for the train command.
+EXPERIMENT_DRIVER = textwrap.dedent("""
+    import sys
+    from experiments import experiment
+    experiment.train_command = lambda settings, agent, passed: [sys.executable, "waiting_train.py",
+                                                                f"agent={agent}"]
+    sys.exit(experiment.main(["task=tabletop", "agents=morefree,rf_peg", "seeds=0", "parallel=1"]))
+""")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_background_experiment_stops_on_a_signal_and_starts_no_further_agent(tmp_path, signum):
+    """Started as `nohup make experiment ... &` starts it: with SIGINT ignored, which Python keeps."""
+    (tmp_path / "waiting_train.py").write_text(WAITING_TRAIN)
+    (tmp_path / "driver.py").write_text(EXPERIMENT_DRIVER)
+    (tmp_path / "runs").mkdir()
+    env = {**os.environ, "PYTHONPATH": f"{REPO / 'src'}:{REPO}"}
+    process = subprocess.Popen([sys.executable, "driver.py"], cwd=tmp_path, env=env, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    marker = tmp_path / "runs/morefree.state"
+    deadline = time.monotonic() + 60
+    while not (marker.exists() and marker.read_text() == "running"):
+        assert time.monotonic() < deadline and process.poll() is None, process.stderr.read()
+        time.sleep(0.1)
+    process.send_signal(signum)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == experiment.STOPPED_EXIT, err
+    assert marker.read_text() == "stopped"  # the agent got its Ctrl-C
+    assert not (tmp_path / "runs/rf_peg.state").exists() and not (tmp_path / "runs/tabletop/rf_peg").exists()
+    assert "stopping every agent after its current chunk" in out
+    assert "stopped (not started: rf_peg); re-run the same command to resume; no figures drawn" in err
