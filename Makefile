@@ -16,7 +16,8 @@ RUN_DIR ?= runs/$(ENV)/$(AGENT)/seed$(SEED)
 ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocator_env()" 2>/dev/null)
 
 # make experiment: TASK (default ENV), AGENTS, SEEDS (default 0,1,2). make plots: RUNS, OUT, TASK (default all),
-# MARKS (steps of the results table, e.g. 20000,100000), WINDOW (e.g. 75000:100000: the window table).
+# MARKS (steps of the results table, e.g. 20000,100000), WINDOW (e.g. 75000:100000: the window table),
+# PLOT_AGENTS (only these agents, e.g. oracle_sac,r3l; default all).
 TASK ?=
 AGENTS ?= morefree,rf_peg
 DEFAULT_SEEDS := 0,1,2
@@ -24,6 +25,7 @@ RUNS ?= runs
 OUT ?= results
 MARKS ?=
 WINDOW ?=
+PLOT_AGENTS ?=
 
 .PHONY: install test test-slow lint bench clean train evaluate experiment plots demos
 
@@ -62,7 +64,8 @@ experiment:
 # Figures (PNG, SVG) and results tables of every run dir below RUNS, written to OUT.
 plots:
 	PYTHONPATH=src:. $(PY) -m experiments.plots $(RUNS) --out $(OUT) $(if $(TASK),--task $(TASK)) \
-		$(if $(MARKS),--marks $(MARKS)) $(if $(WINDOW),--window $(WINDOW))
+		$(if $(MARKS),--marks $(MARKS)) $(if $(WINDOW),--window $(WINDOW)) \
+		$(if $(PLOT_AGENTS),--agents $(PLOT_AGENTS))
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)

@@ -1,10 +1,11 @@
 """The paper's figures and a results table from run directories (`make plots RUNS=runs OUT=results`).
 
-    python -m experiments.plots runs [--out results] [--task point_umaze] [--marks 25000,50000,100000]
-                                     [--window 75000:100000] [--visitation-step 100000]
+    python -m experiments.plots runs [--out results] [--task point_umaze] [--agents oracle_sac,r3l]
+                                     [--marks 25000,50000,100000] [--window 75000:100000]
+                                     [--visitation-step 100000]
 
-Reads every run dir below the given directory (config.json + metrics.jsonl), groups them by task and agent,
-and writes to --out, per task (PNG and SVG):
+Reads every run dir below the given directory (config.json + metrics.jsonl; with --agents only those
+agents'), groups them by task and agent, and writes to --out, per task (PNG and SVG):
   <task>_success           eval success (any step of the episode) against env steps, mean over seeds with a
                            standard-error band, seed count in the legend (the paper's protocol)
   <task>_final_success     the same for success at the episode's last step
@@ -237,11 +238,13 @@ def _parse(argv):
     parser.add_argument("runs", help="directory searched for run dirs (e.g. runs)")
     parser.add_argument("--out", default="results", help="where figures and tables go (default: results)")
     parser.add_argument("--task", default=None, help="only this task")
+    parser.add_argument("--agents", default="", help="only these agents, comma-separated (default: all)")
     parser.add_argument("--marks", default="", help="comma-separated env steps of the results table")
     parser.add_argument("--window", default="", help="START:STOP env steps of the window table")
     parser.add_argument("--visitation-step", type=int, default=None,
                         help="heatmaps at the latest saved step at or below this (default: each agent's)")
     args = parser.parse_args(argv)
+    args.agents = [a.strip() for a in args.agents.split(",") if a.strip()] or None
     try:
         args.marks = [int(m) for m in args.marks.split(",") if m.strip()]
     except ValueError:
@@ -260,7 +263,7 @@ def _parse(argv):
 def main(argv: list[str]) -> int:
     args = _parse(argv)
     try:
-        runs, skipped = run_groups.find_runs(args.runs, args.task)
+        runs, skipped = run_groups.find_runs(args.runs, args.task, args.agents)
     except NoRunsError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -75,8 +75,9 @@ def read_run(run_dir: pathlib.Path) -> RunRecord:
     return record
 
 
-def find_runs(root, task: str | None = None) -> tuple[list[RunRecord], list[str]]:
-    """(runs below `root`, one line per skipped directory saying why). NoRunsError when none is usable."""
+def find_runs(root, task: str | None = None, agents=None) -> tuple[list[RunRecord], list[str]]:
+    """(runs below `root`, one line per skipped directory saying why); `agents`: only these agents' runs.
+    NoRunsError when none is usable."""
     root = pathlib.Path(root)
     if not root.is_dir():
         raise NoRunsError(f"{root} is not a directory")
@@ -92,11 +93,15 @@ def find_runs(root, task: str | None = None) -> tuple[list[RunRecord], list[str]
             skipped.append(f"skipped {run_dir}: holds task {record.task}, not {task}")
             continue
         runs.append(record)
-    if not runs:
+    chosen = [run for run in runs if agents is None or run.agent in agents]
+    if not chosen:
         where = f"{root}" + (f" for task {task}" if task else "")
+        if runs:  # there are runs, of other agents
+            found = ", ".join(sorted({run.agent for run in runs}))
+            raise NoRunsError(f"no run of {', '.join(agents)} found below {where} (agents there: {found})")
         raise NoRunsError(f"no run with evaluations found below {where} (a run dir holds config.json and "
                           f"metrics.jsonl; {len(skipped)} skipped)")
-    return runs, skipped
+    return chosen, skipped
 
 
 Groups = dict[tuple[str, str], list["RunRecord"]]

@@ -170,3 +170,15 @@ def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
     _, capped = plots.visitation_figure("point_umaze", groups, geometry, cap=5000)
     assert capped == {"ibc": 2800, "morefree": 5000, "rf_peg": 5000}
     assert plots.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
+
+
+def test_agents_option_draws_only_those_agents(runs, tmp_path, capsys):
+    out = tmp_path / "results"
+    assert plots.main([str(runs), "--out", str(out), "--agents", "rf_peg", "--marks", "7500"]) == 0
+    with open(out / "point_umaze_results.csv") as file:
+        assert [row["agent"] for row in csv.DictReader(file)] == ["rf_peg"]
+    assert not (out / "ablation.csv").exists()  # no morefree among the chosen agents
+    capsys.readouterr()
+    assert plots.main([str(runs), "--out", str(out), "--agents", "r3l,ibc"]) == 2
+    error = capsys.readouterr().err
+    assert error == f"error: no run of r3l, ibc found below {runs} (agents there: morefree, rf_peg)\n"
