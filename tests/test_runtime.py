@@ -63,6 +63,7 @@ def test_modes_set_their_xla_flags():
             "print(json.dumps(os.environ.get('XLA_FLAGS', '')))")
     flags = {mode: _last_json(_python(code, mode)) for mode in ("large", "standard", "default")}
     assert runtime.YNN_OFF in flags["large"] and runtime.YNN_OFF not in flags["standard"]
+    assert runtime.IN_PLACE_LOOPS in flags["large"] and runtime.IN_PLACE_LOOPS in flags["standard"]
     assert flags["default"] == ""
 
 

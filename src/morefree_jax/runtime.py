@@ -11,6 +11,11 @@ experiments/bench_core.py on the 2-core dev machine):
 - `standard` (the default): `--xla_cpu_prefer_vector_width=512` on CPUs with AVX-512. XLA's loop fusions
   (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256: the `cpu` train step
   111 -> 78 ms, the ensemble forward at `paper` size 270 -> 300 GFLOP/s.
+  On every CPU, `--xla_cpu_copy_insertion_use_region_analysis=true`: XLA's copy insertion then sees that a
+  buffer carried through a loop can be updated in place where its default analysis copies it. The
+  model-free chunk stores into and samples from its replay in every step of one scan, and by default
+  XLA copied a replay field twice per step (README "Benchmarks", model-free section, for the gain). Only
+  copies go: the numbers stay bit for bit the same.
 - `large`, for paper-size learners on CPU (`make train PRESET=paper` and bench_core's paper row set it):
   `standard` plus two changes that only pay off when one update moves gigabytes.
   1. Page faults. XLA allocates an execution's temporaries (6.5 GB at `paper`) afresh on every call;
@@ -50,6 +55,7 @@ JEMALLOC_CONF = "retain:true,dirty_decay_ms:-1,muzzy_decay_ms:-1"  # keep freed 
 MODES = ("standard", "large", "default")
 YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
 WIDE_VECTORS = "--xla_cpu_prefer_vector_width=512"  # only on CPUs with AVX-512
+IN_PLACE_LOOPS = "--xla_cpu_copy_insertion_use_region_analysis=true"
 _M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8  # glibc's mallopt parameter numbers
 
 
@@ -144,7 +150,8 @@ def configure(mode: str | None = None) -> dict:
     if mode == "default":
         _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
         return _applied
-    wanted = ([YNN_OFF] if mode == "large" else []) + ([WIDE_VECTORS] if _has_avx512() else [])
+    wanted = [IN_PLACE_LOOPS, *([YNN_OFF] if mode == "large" else []),
+              *([WIDE_VECTORS] if _has_avx512() else [])]
     keep = _keep_freed_memory() if mode == "large" and allocator == "glibc" else False
     _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": keep,
                 "xla_flags": _add_xla_flags(wanted)}
