@@ -6,15 +6,18 @@ import functools
 
 import jax
 import pytest
+from loop_helpers import COMPILATION_CACHE
 
 import envs_mjx
 from morefree_jax import runtime
 
 # The tuned CPU runtime the CLIs use (importing the library sets nothing); before any JAX computation.
 runtime.configure()
-# No persistent compilation cache in the test process, even if JAX_COMPILATION_CACHE_DIR is set: see
-# tests/loop_helpers.py (XLA aborted loading a cached collect program here).
-jax.config.update("jax_enable_compilation_cache", False)
+# One persistent compilation cache for the test processes (both xdist workers) and the CLI runs they start:
+# a CLI run loads the programs a test compiled in-process with the same config, and a worker loads what the
+# other compiled (loop_helpers.COMPILATION_CACHE). Programs under a second to compile are not written.
+jax.config.update("jax_compilation_cache_dir", COMPILATION_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 @functools.cache

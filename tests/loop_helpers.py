@@ -19,11 +19,11 @@ import envs_mjx
 from morefree_jax.config_run import resolve_config
 from morefree_jax.logger import read_metrics
 
-# A persistent compilation cache for the CLI subprocesses of test_loop: the first compiles, the later ones
-# load its executables. The test process itself does not use it (conftest turns it off): since PointUMaze
-# steps MJX physics, XLA aborted deserialising a run's collect program in a process that had compiled
-# other runs' programs before (reproduced in tests/test_loop.py's variant runs; a fresh process loads the
-# same file fine).
+# The persistent compilation cache of the test processes (conftest) and of the CLI runs they start: the
+# first to compile a program writes it, the others load it. Until 2026-12-02 the test processes kept out of
+# it, since XLA had aborted deserialising a run's MJX collect program in a process that had compiled other
+# runs' programs (2026-11-29, before debug_programs cleared JAX's caches between variants); a whole suite
+# from an empty cache with the test processes in it passed on 2026-12-02.
 COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path(tempfile.gettempdir()) / f"morefree_jax_test_cache_{os.getuid()}")
 

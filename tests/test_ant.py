@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -27,10 +29,43 @@ def _rollout(env, state, actions):
     return jax.lax.scan(body, state, actions)[1]
 
 
-def test_zero_action_stays_upright_in_the_room_for_500_steps():
+# The tests below share one compiled scan (the MJX step's compile dominates this file): STEPS steps from a
+# reset, optionally with the torso moved and pushed, returning every state's qpos and qvel.
+STEPS = 500
+
+
+@functools.cache
+def _trajectory_program():
     env = cached_env(ENV)
-    obs = jax.jit(lambda key: _rollout(env, env.reset(key), jnp.zeros((500, 8))))(jax.random.PRNGKey(0))
-    obs = np.asarray(obs)
+
+    def trajectory(key, pushed, xy, velocity, actions):
+        """(first qpos, first qvel), then obs, qpos and qvel after each of the STEPS actions."""
+        state = env.reset(key)
+        data = state.pipeline_state
+        moved = data.replace(qpos=data.qpos.at[:2].set(xy), qvel=data.qvel.at[:2].set(velocity))
+        data = jax.tree.map(lambda m, d: jnp.where(pushed, m, d), moved, data)
+        state = state.replace(pipeline_state=data)
+
+        def body(state, action):
+            state = env.step(state, action)
+            return state, (state.obs, state.pipeline_state.qpos, state.pipeline_state.qvel)
+
+        return (data.qpos, data.qvel), jax.lax.scan(body, state, actions)[1]
+
+    return jax.jit(trajectory)
+
+
+def _trajectory(seed, actions=None, pushed_from=None, velocity=(0.0, 0.0)):
+    steps = np.zeros((STEPS, 8), np.float32)
+    if actions is not None:
+        steps[: len(actions)] = actions
+    xy = (0.0, 0.0) if pushed_from is None else pushed_from
+    return jax.device_get(_trajectory_program()(jax.random.PRNGKey(seed), pushed_from is not None,
+                                                jnp.array(xy), jnp.array(velocity), jnp.asarray(steps)))
+
+
+def test_zero_action_stays_upright_in_the_room_for_500_steps():
+    _, (obs, _, _) = _trajectory(0)
     assert np.all(np.isfinite(obs))
     assert _up_z(obs[:, 3:7]).min() > 0.9, "the ant tipped over"
     assert obs[:, 2].min() > 0.2, "the torso sank into the floor"
@@ -39,18 +74,8 @@ def test_zero_action_stays_upright_in_the_room_for_500_steps():
 
 
 def test_walls_stop_a_torso_pushed_toward_them():
-    env = cached_env(ENV)
-
-    def pushed(key, velocity):
-        state = env.reset(key)
-        data = state.pipeline_state
-        data = data.replace(qpos=data.qpos.at[:2].set(jnp.array([3.5, 3.5])),
-                            qvel=data.qvel.at[:2].set(velocity))
-        return _rollout(env, state.replace(pipeline_state=data), jnp.zeros((40, 8)))
-
-    run = jax.jit(pushed)
     for velocity in ([8.0, 0.0], [0.0, 8.0], [-8.0, 0.0], [0.0, -8.0]):
-        xy = np.asarray(run(jax.random.PRNGKey(1), jnp.array(velocity))[:, :2])
+        xy = _trajectory(1, pushed_from=(3.5, 3.5), velocity=velocity)[1][0][:40, :2]
         # The torso sphere (radius 0.25) may touch a wall but its centre never passes within 0.15 of it.
         assert xy.min() > ROOM_LOW + 0.15 and xy.max() < ROOM_HIGH - 0.15, (velocity, xy.min(), xy.max())
         assert np.abs(xy - 3.5).max() > 0.5 or velocity[0] < 0 or velocity[1] < 0, "the push did not move it"
@@ -63,20 +88,22 @@ def test_mjx_matches_c_mujoco_for_20_steps():
     1e-5); where a contact activates MJX's pyramidal-cone solve differs from C MuJoCo's by up to about
     2e-2 in one control step (measured), so every step must be within 3e-2."""
     env = cached_env(ENV)
-    step = jax.jit(env.step)
     errors = []
     for seed in range(2):
-        state = jax.jit(env.reset)(jax.random.PRNGKey(seed))
-        actions = jax.random.uniform(jax.random.PRNGKey(10 + seed), (20, 8), minval=-1.0, maxval=1.0)
-        for action in actions:
+        actions = np.asarray(jax.random.uniform(jax.random.PRNGKey(10 + seed), (20, 8), minval=-1.0,
+                                                maxval=1.0))
+        (qpos, qvel), (_, qpos_after, qvel_after) = _trajectory(seed, actions)
+        # each C step starts from MJX's state before that step
+        starts_qpos = np.concatenate([qpos[None], qpos_after[: len(actions) - 1]])
+        starts_qvel = np.concatenate([qvel[None], qvel_after[: len(actions) - 1]])
+        for action, start_qpos, start_qvel, next_qpos in zip(actions, starts_qpos, starts_qvel,
+                                                               qpos_after[: len(actions)], strict=True):
             c_data = mujoco.MjData(env.mj_model)
-            c_data.qpos[:] = np.asarray(state.pipeline_state.qpos)
-            c_data.qvel[:] = np.asarray(state.pipeline_state.qvel)
-            c_data.ctrl[:] = 30.0 * np.asarray(action)
+            c_data.qpos[:], c_data.qvel[:] = start_qpos, start_qvel
+            c_data.ctrl[:] = 30.0 * action
             for _ in range(env.frames_per_step):
                 mujoco.mj_step(env.mj_model, c_data)
-            state = step(state, action)
-            errors.append(np.abs(np.asarray(state.pipeline_state.qpos) - c_data.qpos).max())
+            errors.append(np.abs(next_qpos - c_data.qpos).max())
     errors = np.asarray(errors)
     assert errors.max() < 3e-2, errors.max()
     assert np.mean(errors < 1e-5) > 0.6, np.sort(errors)

@@ -7,7 +7,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from conftest import cached_env, compiled_rollout
+from conftest import cached_env
 
 from envs_mjx.point_umaze import LAYOUT, cell_center, collide_with_walls, wall_faces
 
@@ -24,23 +24,44 @@ def test_reflection_matches_hand_computed_bounce():
     np.testing.assert_allclose(np.asarray(free_move), [0.5, 0.5], atol=1e-6)
 
 
-def _drive(env, actions_fn, num_steps, heading0):
-    """Scan num_steps of `actions_fn(obs)` from the start pose with heading heading0; returns obs."""
-    state = env.reset(jax.random.PRNGKey(0))
-    data = state.pipeline_state
-    data = data.replace(qpos=jnp.array([0.0, 0.0, heading0]), qvel=jnp.zeros(3))
-    state = state.replace(pipeline_state=data, obs=jnp.concatenate([data.qpos, data.qvel]))
+# The three drives below share one compiled scan (the MJX step's compile, ~45 s on a slow CPU, dominates
+# this file): a 10,000-step drive with the controller chosen by an argument; each test reads its prefix.
+DRIVE_STEPS = 10_000
+PUSH_FORWARD, WAYPOINTS, RANDOM = 0, 1, 2
 
-    def body(state, _):
-        state = env.step(state, actions_fn(state.obs))
-        return state, state.obs
 
-    return jax.lax.scan(body, state, None, length=num_steps)[1]
+@functools.cache
+def _drive_program():
+    env = cached_env(ENV)
+
+    def drive(controller, heading0, key):
+        """DRIVE_STEPS of `controller`: from the pose (0, 0, heading0) at rest, or for RANDOM from a reset
+        with `key`. Returns the observations (DRIVE_STEPS, obs size)."""
+        key_reset, key_actions = jax.random.split(key)
+        reset = env.reset(key_reset)
+        data = reset.pipeline_state.replace(qpos=jnp.array([0.0, 0.0, heading0]), qvel=jnp.zeros(3))
+        posed = reset.replace(pipeline_state=data, obs=jnp.concatenate([data.qpos, data.qvel]))
+        state = jax.tree.map(lambda r, p: jnp.where(controller == RANDOM, r, p), reset, posed)
+        random_actions = jax.random.uniform(key_actions, (DRIVE_STEPS, env.action_size), minval=-1.0,
+                                            maxval=1.0)
+        controllers = (lambda obs, a: jnp.array([1.0, 0.0]), lambda obs, a: waypoint_controller(obs),
+                       lambda obs, a: a)
+
+        def body(state, random_action):
+            state = env.step(state, jax.lax.switch(controller, controllers, state.obs, random_action))
+            return state, state.obs
+
+        return jax.lax.scan(body, state, random_actions)[1]
+
+    return jax.jit(drive)
+
+
+def _drive(controller: int, heading0: float = 0.0, seed: int = 0):
+    return _drive_program()(controller, heading0, jax.random.PRNGKey(seed))
 
 
 def test_driving_into_inner_wall_never_crosses_it():
-    env = cached_env(ENV)
-    obs = jax.jit(lambda: _drive(env, lambda o: jnp.array([1.0, 0.0]), 50, jnp.pi / 2))()
+    obs = _drive(PUSH_FORWARD, jnp.pi / 2)[:50]
     y = np.asarray(obs[:, 1])
     assert y.max() <= 1.6 + 1e-4, "the point entered the inflated inner wall"
     assert y.max() > 1.0, "the point should have driven up to the wall"
@@ -62,7 +83,7 @@ def waypoint_controller(obs):
 
 def test_scripted_controller_reaches_goal_within_episode():
     env = cached_env(ENV)
-    obs = jax.jit(lambda: _drive(env, waypoint_controller, env.eval_episode_length, 0.0))()
+    obs = _drive(WAYPOINTS)[: env.eval_episode_length]
     goal = env.eval_goals(jax.random.PRNGKey(0))
     successes = np.asarray(jax.vmap(env.success, in_axes=(0, None))(obs, goal))
     assert successes.any(), f"closest approach {float(jnp.min(env.goal_distance(obs, goal))):.2f}"
@@ -76,7 +97,7 @@ def _wall_blocks():
 
 
 def test_random_actions_for_10000_steps_stay_in_the_maze():
-    _, _, obs = compiled_rollout(ENV, 10_000)(jax.random.PRNGKey(7))
+    obs = _drive(RANDOM, seed=7)
     xy = np.asarray(obs[:, :2])
     assert xy.min() >= -2.0 and xy.max() <= 10.0
     # Never inside a wall block (blocks are 4 x 4, centred on their cell).
