@@ -24,8 +24,8 @@ def test_reflection_matches_hand_computed_bounce():
     np.testing.assert_allclose(np.asarray(free_move), [0.5, 0.5], atol=1e-6)
 
 
-# The three drives below share one compiled scan (the MJX step's compile, ~45 s on a slow CPU, dominates
-# this file): a 10,000-step drive with the controller chosen by an argument; each test reads its prefix.
+# The three drives below share one compiled scan (the MJX step's compile dominates this file): a
+# 10,000-step drive with the controller chosen by an argument; each test reads its prefix.
 DRIVE_STEPS = 10_000
 PUSH_FORWARD, WAYPOINTS, RANDOM = 0, 1, 2
 
