@@ -3,6 +3,8 @@ lines, exit codes, plots at the end) with a stand-in for the train command that 
 
 from __future__ import annotations
 
+import fcntl
+import json
 import os
 import pathlib
 import signal
@@ -81,6 +83,23 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
     assert plotted == [["runs/tabletop", "--out", "runs/tabletop/results", "--task", "tabletop"]]
 
 
+def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
+    """SIGKILLs the train process that holds run_dir's lock and waits until the lock is free. experiment
+    starts each train in its own session (a terminal's Ctrl-C reaches experiment alone), so killing
+    experiment's process group leaves its train running on."""
+    os.kill(json.loads((run_dir / ".lock").read_text())["pid"], signal.SIGKILL)
+    deadline = time.monotonic() + timeout_s
+    with open(run_dir / ".lock") as lock:
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(lock, fcntl.LOCK_UN)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{run_dir}'s lock still held after SIGKILL"
+                time.sleep(0.05)
+
+
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     """The real command: r3l (the fused model-free chunk compiles in seconds) with 2 seeds at the debug
     preset, SIGKILLed with its train process once the first chunk's checkpoint is complete, then re-run."""
@@ -94,11 +113,12 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
                f"steps={PREFILL + 3 * CHUNK}", "parallel=1", *passed]
     env = {**os.environ, "PYTHONPATH": f"{REPO / 'src'}:{REPO}",
            "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-    # Its own process group, so that the train process it started dies with it.
+    # Its own process group, so that killing it spares pytest (its train runs in a session of its own).
     first = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, start_new_session=True)
     checkpoint = tmp_path / "runs/tabletop/r3l/seed1/checkpoints" / str(PREFILL + CHUNK) / "files.json"
     sigkill_once_written(first, checkpoint, group=True)
+    _sigkill_lock_owner(tmp_path / "runs/tabletop/r3l/seed0")
     figures = tmp_path / "runs/tabletop/results"  # beside the runs: the repository's results/ stays as it is
     assert not figures.exists()  # killed before the end: no figures yet
     second = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)

@@ -90,11 +90,13 @@ LATER_SECTIONS = ("baseline", "baseline.ibc", "baseline.discriminator")
 def later_keys() -> dict:
     """Keys added to an existing section after run dirs existed, with the value a run that predates them
     used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), the
-    observation normalisation (runs before it saw raw observations) and the GRU bias (they had none)."""
+    observation normalisation (runs before it saw raw observations), the GRU bias (they had none) and the
+    learner's codegen (XLA's default, "optimized")."""
     from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
 
     sac_options = {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
-    return {**sac_options, "agent.normalise_observations": False, "agent.wm.gru_bias": False}
+    return {**sac_options, "agent.normalise_observations": False, "agent.wm.gru_bias": False,
+            "run.codegen": "optimized"}
 
 
 def _has_section(tree: dict, dotted: str) -> bool:

@@ -86,7 +86,7 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
         raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
     seed_axis = resolve_seed_axis(seed_axis)
 
-    def program(fn, donate: bool = False):
+    def program(fn, donate: bool = False, learner: bool = False):
         if fn is None:  # a run function the agent does not have (model-free: no train_updates)
             return None
         if sharding is None:
@@ -96,11 +96,19 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
             spec = PartitionSpec(SEED_AXIS)
             over_seeds = jax.shard_map(_over_seeds(fn, local, seed_axis), mesh=sharding.mesh, in_specs=spec,
                                        out_specs=spec, check_vma=False)
-        return jax.jit(over_seeds, donate_argnums=0 if donate else ())
+        return jax.jit(over_seeds, donate_argnums=0 if donate else (),
+                       compiler_options=compiler_options(fns) if learner else None)
 
-    return Programs(fns, num_seeds, seed_axis, sharding, program(fns.init), program(fns.prefill, donate=True),
-                    program(fns.collect, donate=True), program(fns.train_updates, donate=True),
-                    program(fns.evaluate), program(fns.visitation))
+    return Programs(fns, num_seeds, seed_axis, sharding, program(fns.init, learner=True),
+                    program(fns.prefill, donate=True), program(fns.collect, donate=True),
+                    program(fns.train_updates, donate=True, learner=True), program(fns.evaluate),
+                    program(fns.visitation))
+
+
+def compiler_options(fns: RunFns) -> dict | None:
+    """XLA options of the learner's programs (init, train_updates): run.codegen "fast" turns LLVM's
+    optimisation off (config_run.RunConfig); None leaves XLA's defaults."""
+    return {"xla_backend_optimization_level": 0} if fns.config.run.codegen == "fast" else None
 
 
 def seed_slice(tree, index: int):
@@ -116,7 +124,10 @@ def stack_seeds(trees: list, sharding: NamedSharding | None = None):
 
 def jit_run_fns(fns: RunFns) -> RunFns:
     """The run functions jitted one seed at a time, states donated (notebooks, benchmarks, tests)."""
-    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0)
-               for name in ("prefill", "collect", "train_updates") if getattr(fns, name) is not None}
-    return fns._replace(init=jax.jit(fns.init), evaluate=jax.jit(fns.evaluate),
+    options = {name: compiler_options(fns) if name == "train_updates" else None
+               for name in ("prefill", "collect", "train_updates")}
+    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0, compiler_options=options[name])
+               for name in options if getattr(fns, name) is not None}
+    return fns._replace(init=jax.jit(fns.init, compiler_options=compiler_options(fns)),
+                        evaluate=jax.jit(fns.evaluate),
                         visitation=jax.jit(fns.visitation), **donated)

@@ -41,7 +41,7 @@ GOAL_POOL_SIZE = 64  # evaluation goals / initial states sampled per chunk for t
 # (seed, run dir, step budget, cadence of logs, evaluations and checkpoints) only steer the host driver, so
 # compiled functions can be reused across them (loop.train(..., programs=...)).
 COMPILED_RUN_KEYS = ("env", "agent", "prefill", "train_every", "eval_episodes", "hard_reset_every",
-                     "subgoal_threshold", "visitation_bins")
+                     "subgoal_threshold", "visitation_bins", "codegen")
 
 
 @struct.dataclass
