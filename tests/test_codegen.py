@@ -1,4 +1,4 @@
-"""run.codegen: the learner's programs compiled with LLVM's optimisation off, for debug runs and tests."""
+"""run.codegen: the learner's programs at XLA's backend optimisation level 0, for debug runs and tests."""
 
 from __future__ import annotations
 

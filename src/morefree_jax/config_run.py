@@ -56,9 +56,10 @@ class RunConfig:
     program, bit-exact single-seed numbers), "vmap" (batched, for accelerators), "auto" (map on CPU, vmap
     on GPU/TPU); it may change on resume.
     codegen: how XLA compiles the learner's programs (init, train_updates): "optimized" (XLA's default) or
-    "fast", LLVM's optimisation off for them: they compile in about half the time, update more slowly and
-    round differently. For short debug runs and the tests; it may not change on resume (the numbers do).
-    The programs that step the env always compile optimized: unoptimized MJX physics runs ~10x slower.
+    "fast", XLA's backend optimisation level 0 for them (LLVM unoptimised): they compile faster, update
+    more slowly and round differently (README, Training and evaluation). For short debug runs and the
+    tests; it may not change on resume (the numbers do). The programs that step the env always compile
+    optimized: unoptimised MJX physics runs many times slower.
     """
 
     env: str = "point_umaze"

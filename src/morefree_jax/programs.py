@@ -106,8 +106,8 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
 
 
 def compiler_options(fns: RunFns) -> dict | None:
-    """XLA options of the learner's programs (init, train_updates): run.codegen "fast" turns LLVM's
-    optimisation off (config_run.RunConfig); None leaves XLA's defaults."""
+    """XLA options of the learner's programs (init, train_updates): run.codegen "fast" sets XLA's backend
+    optimisation level 0 (config_run.RunConfig); None leaves XLA's defaults."""
     return {"xla_backend_optimization_level": 0} if fns.config.run.codegen == "fast" else None
 
 
@@ -124,10 +124,10 @@ def stack_seeds(trees: list, sharding: NamedSharding | None = None):
 
 def jit_run_fns(fns: RunFns) -> RunFns:
     """The run functions jitted one seed at a time, states donated (notebooks, benchmarks, tests)."""
-    options = {name: compiler_options(fns) if name == "train_updates" else None
-               for name in ("prefill", "collect", "train_updates")}
-    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0, compiler_options=options[name])
-               for name in options if getattr(fns, name) is not None}
-    return fns._replace(init=jax.jit(fns.init, compiler_options=compiler_options(fns)),
+    learner = compiler_options(fns)
+    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0,
+                             compiler_options=learner if name == "train_updates" else None)
+               for name in ("prefill", "collect", "train_updates") if getattr(fns, name) is not None}
+    return fns._replace(init=jax.jit(fns.init, compiler_options=learner),
                         evaluate=jax.jit(fns.evaluate),
                         visitation=jax.jit(fns.visitation), **donated)
