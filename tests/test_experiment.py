@@ -86,7 +86,8 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
 def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
     """SIGKILLs the train process that holds run_dir's lock and waits until the lock is free. experiment
     starts each train in its own session (a terminal's Ctrl-C reaches experiment alone), so killing
-    experiment's process group leaves its train running on."""
+    experiment's process group leaves its train running on. A bare flock probe, not RunDirLock: that
+    would empty the lock file on release, where a killed run leaves its owner in it for the resume."""
     os.kill(json.loads((run_dir / ".lock").read_text())["pid"], signal.SIGKILL)
     deadline = time.monotonic() + timeout_s
     with open(run_dir / ".lock") as lock:
