@@ -50,6 +50,7 @@ def main(argv: list[str]) -> int:
         from envs_mjx.normalise import in_task_units
         from morefree_jax.evaluate import evaluate_policy, render_episode, success_per_goal, write_video
         from morefree_jax.loop import restore_run
+        from morefree_jax.programs import compiler_options
 
         run, state, step = restore_run(args["run_dir"])
     except (ValueError, ConfigError, ConfigMismatchError, CheckpointError) as error:
@@ -57,7 +58,8 @@ def main(argv: list[str]) -> int:
         return 2
     keep = args["video"] is not None
     evaluate = jax.jit(lambda agent_state, key: evaluate_policy(
-        run.env, run.agent, agent_state, key, args["episodes"], keep_states=keep))
+        run.env, run.agent, agent_state, key, args["episodes"], keep_states=keep),
+        compiler_options=compiler_options(run))
     result = evaluate(state.agent, jax.random.PRNGKey(args["seed"]))
     names = f"{run.config.run.agent} on {run.config.run.env}"
     print(f"{names}, checkpoint step {step}, {args['episodes']} episodes")

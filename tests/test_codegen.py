@@ -1,4 +1,4 @@
-"""run.codegen: the learner's programs at XLA's backend optimisation level 0, for debug runs and tests."""
+"""run.codegen: a run's programs at XLA's backend optimisation level 0, for debug runs and tests."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def _config(*extra: str):
     return resolve_config(["env=tabletop", "agent=morefree", *extra], envs_mjx.ALL_ENVS)
 
 
-def test_fast_codegen_turns_llvm_optimisation_off_for_the_learner_only():
+def test_fast_codegen_turns_llvm_optimisation_off():
     assert compiler_options(types.SimpleNamespace(config=_config("codegen=fast"))) == {
         "xla_backend_optimization_level": 0}
     assert compiler_options(types.SimpleNamespace(config=_config())) is None  # XLA's defaults

@@ -245,7 +245,7 @@ def test_two_chunk_run_writes_every_file_and_keeps_the_stream_rules(tmp_path):
     keys = jnp.stack([jax.random.PRNGKey(seed) for seed in SEEDS])
     prefilled = programs.prefill(programs.init(keys))
     # The only host round trip is the matching's assignment (every match_every forward segments).
-    assert callback_primitives(jax.make_jaxpr(programs.collect)(prefilled).jaxpr) == {"pure_callback"}
+    assert callback_primitives(programs.collect.trace(prefilled).jaxpr.jaxpr) == {"pure_callback"}
     summaries = train(tmp_path, steps)
     assert [s.env_steps for s in summaries] == [steps] * len(SEEDS)
     assert programs.collect._cache_size() == 1

@@ -132,7 +132,7 @@ def test_running_statistics_match_numpy():
 def test_fused_chunk_compiles_once_without_host_callbacks(agent):
     programs, state = prefilled(agent)
     assert programs.train_updates is None  # the chunk is the whole training step
-    assert not callback_primitives(jax.make_jaxpr(programs.collect)(state).jaxpr)
+    assert not callback_primitives(programs.collect.trace(state).jaxpr.jaxpr)
     for _ in range(2):
         state, metrics = programs.collect(state)
     assert programs.collect._cache_size() == 1

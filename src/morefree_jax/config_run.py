@@ -55,11 +55,10 @@ class RunConfig:
     seed_axis: how the seeds of a multi-seed run share one program (programs.py): "map" (a loop inside the
     program, bit-exact single-seed numbers), "vmap" (batched, for accelerators), "auto" (map on CPU, vmap
     on GPU/TPU); it may change on resume.
-    codegen: how XLA compiles the learner's programs (init, train_updates): "optimized" (XLA's default) or
-    "fast", XLA's backend optimisation level 0 for them (LLVM unoptimised): they compile faster, update
-    more slowly and round differently (README, Training and evaluation). For short debug runs and the
-    tests; it may not change on resume (the numbers do). The programs that step the env always compile
-    optimized: unoptimised MJX physics runs many times slower.
+    codegen: how XLA compiles a run's programs: "optimized" (XLA's default) or "fast", XLA's backend
+    optimisation level 0 for every program (LLVM unoptimised): they compile in about half the time, run
+    more slowly (MJX physics many times slower) and round differently (README, Training and evaluation).
+    For short debug runs and the tests; it may not change on resume (the numbers do).
     """
 
     env: str = "point_umaze"

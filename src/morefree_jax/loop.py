@@ -34,7 +34,14 @@ from morefree_jax.back_starts import stored_back_starts
 from morefree_jax.checkpoint import CheckpointError, RunCheckpointer, check_run_dir_config, latest_valid
 from morefree_jax.config_run import RESUMABLE_KEYS, Config, ConfigError, config_from_dict, config_to_dict
 from morefree_jax.logger import RunLogger
-from morefree_jax.programs import Programs, compile_programs, seed_sharding, seed_slice, stack_seeds
+from morefree_jax.programs import (
+    Programs,
+    compile_programs,
+    compiler_options,
+    seed_sharding,
+    seed_slice,
+    stack_seeds,
+)
 from morefree_jax.run_fns import RunFns, RunState, compiled_settings, make_run_fns
 from morefree_jax.run_lock import RunDirLock
 from morefree_jax.seeds import check_seeds, seed_configs
@@ -276,7 +283,7 @@ def restore_run(run_dir) -> tuple[RunFns, RunState, int]:
     config = config_from_dict(Config, json.loads(path.read_text()))
     config = dataclasses.replace(config, run=dataclasses.replace(config.run, run_dir=str(run_dir)))
     fns = make_run_fns(config, envs_mjx.make(config.run.env))
-    template = jax.jit(fns.init)(jax.random.PRNGKey(config.run.seed))
+    template = jax.jit(fns.init, compiler_options=compiler_options(fns))(jax.random.PRNGKey(config.run.seed))
     restored = latest_valid(run_dir, template, config_to_dict(config),
                             ignore_config_keys=RESUMABLE_KEYS)
     if restored is None:

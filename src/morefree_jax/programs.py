@@ -86,7 +86,9 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
         raise ValueError(f"num_seeds must be >= 1, got {num_seeds}")
     seed_axis = resolve_seed_axis(seed_axis)
 
-    def program(fn, donate: bool = False, learner: bool = False):
+    options = compiler_options(fns)
+
+    def program(fn, donate: bool = False):
         if fn is None:  # a run function the agent does not have (model-free: no train_updates)
             return None
         if sharding is None:
@@ -96,18 +98,17 @@ def compile_programs(fns: RunFns, num_seeds: int, sharding: NamedSharding | None
             spec = PartitionSpec(SEED_AXIS)
             over_seeds = jax.shard_map(_over_seeds(fn, local, seed_axis), mesh=sharding.mesh, in_specs=spec,
                                        out_specs=spec, check_vma=False)
-        return jax.jit(over_seeds, donate_argnums=0 if donate else (),
-                       compiler_options=compiler_options(fns) if learner else None)
+        return jax.jit(over_seeds, donate_argnums=0 if donate else (), compiler_options=options)
 
-    return Programs(fns, num_seeds, seed_axis, sharding, program(fns.init, learner=True),
+    return Programs(fns, num_seeds, seed_axis, sharding, program(fns.init),
                     program(fns.prefill, donate=True), program(fns.collect, donate=True),
-                    program(fns.train_updates, donate=True, learner=True), program(fns.evaluate),
+                    program(fns.train_updates, donate=True), program(fns.evaluate),
                     program(fns.visitation))
 
 
 def compiler_options(fns: RunFns) -> dict | None:
-    """XLA options of the learner's programs (init, train_updates): run.codegen "fast" sets XLA's backend
-    optimisation level 0 (config_run.RunConfig); None leaves XLA's defaults."""
+    """XLA options of every program of a run: run.codegen "fast" sets XLA's backend optimisation level 0
+    (config_run.RunConfig); None leaves XLA's defaults."""
     return {"xla_backend_optimization_level": 0} if fns.config.run.codegen == "fast" else None
 
 
@@ -124,10 +125,9 @@ def stack_seeds(trees: list, sharding: NamedSharding | None = None):
 
 def jit_run_fns(fns: RunFns) -> RunFns:
     """The run functions jitted one seed at a time, states donated (notebooks, benchmarks, tests)."""
-    learner = compiler_options(fns)
-    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0,
-                             compiler_options=learner if name == "train_updates" else None)
+    options = compiler_options(fns)
+    donated = {name: jax.jit(getattr(fns, name), donate_argnums=0, compiler_options=options)
                for name in ("prefill", "collect", "train_updates") if getattr(fns, name) is not None}
-    return fns._replace(init=jax.jit(fns.init, compiler_options=learner),
-                        evaluate=jax.jit(fns.evaluate),
-                        visitation=jax.jit(fns.visitation), **donated)
+    return fns._replace(init=jax.jit(fns.init, compiler_options=options),
+                        evaluate=jax.jit(fns.evaluate, compiler_options=options),
+                        visitation=jax.jit(fns.visitation, compiler_options=options), **donated)
