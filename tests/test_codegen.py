@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import types
 
+import jax
 import pytest
+from conftest import cached_env
 
 import envs_mjx
 from morefree_jax.checkpoint import ConfigMismatchError, config_differences, refuse_config_change
 from morefree_jax.config_run import ConfigError, config_to_dict, resolve_config
-from morefree_jax.programs import compiler_options
-from morefree_jax.run_fns import compiled_settings
+from morefree_jax.programs import compile_programs, compiler_options, jit_run_fns
+from morefree_jax.run_fns import compiled_settings, make_run_fns
+
+PROGRAMS = ("init", "prefill", "collect", "train_updates", "evaluate", "visitation")
 
 
 def _config(*extra: str):
@@ -37,3 +41,19 @@ def test_run_dirs_from_before_the_key_resume_optimized_and_a_change_is_refused()
     assert config_differences(stored, fast) == ["run.codegen"]
     with pytest.raises(ConfigMismatchError, match="run.codegen: 'optimized' -> 'fast'"):
         refuse_config_change(stored, fast, "run dir")  # the numbers round differently: not resumable
+
+
+@pytest.mark.parametrize("agent", ["morefree", "r3l"])
+@pytest.mark.parametrize(("codegen", "expected"), [("fast", {"xla_backend_optimization_level": 0}),
+                                                   ("optimized", None)])
+def test_every_program_of_a_run_gets_the_codegen_options(agent, codegen, expected, monkeypatch):
+    """compile_programs and jit_run_fns pass compiler_options(fns) to the jit of each program."""
+    config = resolve_config(["env=tabletop", f"agent={agent}", f"codegen={codegen}"], envs_mjx.ALL_ENVS)
+    fns = make_run_fns(config, cached_env("tabletop"))
+    given = []
+    monkeypatch.setattr(jax, "jit", lambda fn, **kwargs: given.append(kwargs.get("compiler_options")) or fn)
+    compile_programs(fns, num_seeds=1)
+    jit_run_fns(fns)
+    monkeypatch.undo()
+    programs = sum(getattr(fns, name) is not None for name in PROGRAMS)  # model-free: no train_updates
+    assert given == [expected] * (2 * programs)
