@@ -54,6 +54,5 @@ def test_every_program_of_a_run_gets_the_codegen_options(agent, codegen, expecte
     monkeypatch.setattr(jax, "jit", lambda fn, **kwargs: given.append(kwargs.get("compiler_options")) or fn)
     compile_programs(fns, num_seeds=1)
     jit_run_fns(fns)
-    monkeypatch.undo()
     programs = sum(getattr(fns, name) is not None for name in PROGRAMS)  # model-free: no train_updates
     assert given == [expected] * (2 * programs)

@@ -91,7 +91,7 @@ def later_keys() -> dict:
     """Keys added to an existing section after run dirs existed, with the value a run that predates them
     used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), the
     observation normalisation (runs before it saw raw observations), the GRU bias (they had none) and the
-    learner's codegen (XLA's default, "optimized")."""
+    run's codegen (XLA's default, "optimized")."""
     from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
 
     sac_options = {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
