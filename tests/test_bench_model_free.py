@@ -16,3 +16,20 @@ def test_update_rows_give_the_update_and_its_time_at_the_layer_rate():
     assert math.isfinite(at_rate["value"]) and at_rate["value"] > 0
     assert at_rate["note"].startswith("701 MFLOP at ")  # MEDAL's sizes at point_umaze shapes
 
+
+
+def test_bar_rows_put_pytorch_update_over_the_fused_step(monkeypatch):
+    update = [{"name": "sac_update_ms", "value": 7.0}, {"name": "sac_update_at_layer_rate_ms", "value": 5.0}]
+    monkeypatch.setattr(bench_model_free, "update_rows", lambda: (update, 7.0))
+    monkeypatch.setattr(bench_model_free, "torch_update_ms",
+                        lambda: {"update_ms": 15.0, "torch": "x", "threads": 2})
+    ratio = bench_model_free.bar_rows(point_umaze_rate=250.0)[-1]  # 4 ms per env step
+    assert ratio["name"] == "fused_step_vs_torch_update"
+    assert ratio["value"] == 15.0 / 4.0 and ratio["note"].startswith("meets the bar >= 3")
+    assert bench_model_free.bar_rows(point_umaze_rate=100.0)[-1]["note"].startswith("misses")
+
+
+def test_bar_rows_without_pytorch_are_the_update_rows(monkeypatch):
+    monkeypatch.setattr(bench_model_free, "update_rows", lambda: (["update"], 7.0))
+    monkeypatch.setattr(bench_model_free, "torch_update_ms", lambda: None)
+    assert bench_model_free.bar_rows(point_umaze_rate=100.0) == ["update"]
