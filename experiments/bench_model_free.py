@@ -187,4 +187,5 @@ def run(quick: bool = False) -> list[dict]:
     runs += [(task, agent) for agent in ("r3l", "medal", "ibc") for task in OTHER_AGENTS_TASKS]
     rows += [_chunk_row(task, agent)[0] for task, agent in runs]
     rows.append(matching_row())
+    print(rows[-1], file=sys.stderr, flush=True)
     return rows

@@ -17,7 +17,6 @@ def test_update_rows_give_the_update_and_its_time_at_the_layer_rate():
     assert at_rate["note"].startswith("701 MFLOP at ")  # MEDAL's sizes at point_umaze shapes
 
 
-
 def test_bar_rows_put_pytorch_update_over_the_fused_step(monkeypatch):
     update = [{"name": "sac_update_ms", "value": 7.0}, {"name": "sac_update_at_layer_rate_ms", "value": 5.0}]
     monkeypatch.setattr(bench_model_free, "update_rows", lambda: (update, 7.0))
