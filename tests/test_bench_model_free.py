@@ -32,3 +32,12 @@ def test_bar_rows_without_pytorch_are_the_update_rows(monkeypatch):
     monkeypatch.setattr(bench_model_free, "update_rows", lambda: (["update"], 7.0))
     monkeypatch.setattr(bench_model_free, "torch_update_ms", lambda: None)
     assert bench_model_free.bar_rows(point_umaze_rate=100.0) == ["update"]
+
+
+def test_the_section_measures_the_bar_rows_first(monkeypatch):
+    monkeypatch.setattr(bench_model_free, "chunk_rate", lambda task, agent, chunk: (100.0, 1.0, "sizes"))
+    monkeypatch.setattr(bench_model_free, "bar_rows", lambda rate: [{"name": "bar"}])
+    monkeypatch.setattr(bench_model_free, "matching_row", lambda: {"name": "matching"})
+    names = [row["name"] for row in bench_model_free.run()]
+    assert names[:2] == ["point_umaze_oracle_sac_steps_per_s", "bar"] and names[-1] == "matching"
+    assert len(names) == len(set(names)) == 2 + 7 + 3 * 2 + 1  # the other 7 tasks' oracle_sac, 3 agents x 2
