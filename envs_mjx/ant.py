@@ -104,16 +104,17 @@ class Ant(ResetFreeEnv):
 
     @classmethod
     def default_config(cls) -> dict:
-        """PEG's ant-maze values (agent.md 8.1, 4.1, 5.1-5.2); budget 8e5 steps (the paper: 4 hard resets
-        at one per 2e5 steps)."""
+        """PEG's ant-maze values (agent.md 8.1, 4.1, 5.1-5.2) but the planner horizon; budget 8e5 steps
+        (the paper: 4 hard resets at one per 2e5 steps)."""
         return {
             "run.total_steps": 800_000, "run.prefill": 2_500, "run.train_every": 2,
             "run.subgoal_threshold": 2.0,
             **learner_defaults(entropy=1e-5, discount=0.996, p2e_discount=0.996, neg_factor=0.1),
-            # MPPI gamma 2, 500 candidates, 5 iterations, horizon 150 (PEG's H_G), std_scale 10, initial-state
-            # candidate, last 10 steps.
+            # MPPI gamma 2, 500 candidates, 5 iterations, std_scale 10, initial-state candidate, last 10
+            # steps. Horizon 250 = H_G: PEG scores a goal over the go phase the policy will get (its ant maze:
+            # 150 = 0.3 x 500), as every other task here does; MoReFree's go phase is half the episode (250).
             "planner.method": "mppi", "planner.num_candidates": 500, "planner.iterations": 5,
-            "planner.mppi_temperature": 2.0, "planner.init_std": 10.0, "planner.horizon": 150,
+            "planner.mppi_temperature": 2.0, "planner.init_std": 10.0, "planner.horizon": 250,
             "planner.use_last_steps": 10, "planner.init_mean": "initial_state",
         }
 

@@ -9,8 +9,8 @@ Rows {"section", "name", "value", "unit", "note"}:
                               threshold ~0 so that every go step is checked (worst case). Bar: >= 2,000
                               on point_umaze. Reference (TF2 original, this machine): <= ~370 steps/s.
   planner/<task>_search_s     one PEG goal search with the task's planner config and the paper-size agent,
-                              compiled once (the trace count is checked); ant: 500 candidates, horizon 150,
-                              5 iterations. Bar: <= 20 s. Reference: 39-43 s per call.
+                              compiled once (the trace count is checked); ant: 500 candidates, horizon 250,
+                              5 iterations. Bar: <= 20 s. Reference: 39-43 s per call at PEG's horizon 150.
   chunk/*                     one chunk of the `cpu`-preset run on point_umaze: collect with a goal search
                               (rf_peg: every chunk), collect without one (task goals), train (chunk_len /
                               train_every updates); the search's share of a morefree chunk (a search on
@@ -46,7 +46,7 @@ from morefree_jax.run_fns import make_run_fns
 
 SECTION = "loop"
 REFERENCE_STEPS_PER_S = 370.0  # TF2 original: policy 1.1-1.6 ms + distance check 1.1 ms per env step
-REFERENCE_SEARCH_S = 41.0  # TF2 original, ant config: 39-43 s per call on another day (a constant)
+REFERENCE_SEARCH_S = 41.0  # TF2 original, PEG's ant-maze config (horizon 150): 39-43 s per call, another day
 
 
 def _row(name, value, unit, note=""):
@@ -128,7 +128,8 @@ def search_rows(task: str, reps: int = 3) -> list[dict]:
             f"{config.iterations} iterations, paper-size agent; first call (compile) {first_s:.1f} s; "
             f"traced {len(traces)}x")
     if task == "ant":
-        note += f"; CONSTANT for context, not measured in this run: TF2 original {REFERENCE_SEARCH_S:.0f} s"
+        note += (f"; CONSTANT for context, not measured in this run: TF2 original {REFERENCE_SEARCH_S:.0f} s "
+                 "at PEG's ant-maze horizon 150")
     return [_row(f"planner/{task}_search_s", seconds, "s", note)]
 
 

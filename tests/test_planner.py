@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import cached_env
 
 import envs_mjx
 from morefree_jax import planner
@@ -133,7 +134,7 @@ def test_config_validation_and_task_defaults():
     assert planner.PlannerConfig(num_candidates=500).num_elites == 100
     ant = task_planner("ant")
     assert (ant.method, ant.mppi_temperature, ant.horizon, ant.init_std, ant.use_last_steps) == (
-        "mppi", 2.0, 150, 10.0, 10)
+        "mppi", 2.0, 250, 10.0, 10)  # horizon = MoReFree's H_G, half the 500-step episode
     assert task_planner("point_umaze", "planner.iterations=3").iterations == 3
 
 
@@ -142,3 +143,6 @@ def test_every_registered_task_sets_its_planner(task):
     defaults = envs_mjx.env_class(task).default_config()
     assert {"planner.method", "planner.horizon", "planner.init_std"} <= set(defaults)
     assert task_planner(task).horizon == defaults["planner.horizon"]
+    # PEG imagines a candidate goal's pursuit for as long as the go phase will pursue it: H_G, which for
+    # MoReFree is half the evaluation episode (paper section 5).
+    assert defaults["planner.horizon"] == cached_env(task).eval_episode_length // 2

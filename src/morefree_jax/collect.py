@@ -194,7 +194,7 @@ def peg_goal_scores(agent, agent_state, start_latent, candidates: jax.Array, pla
 
     When only the last k returns count (`use_last_steps`), only the last k + 1 imagined states enter them
     (a lambda-return looks forward only), so the disagreement ensemble and the critic run on those states
-    alone: for the ant config (horizon 150, k 10) that is 11 of 151 states, the same numbers at a fraction
+    alone: for the ant config (horizon 250, k 10) that is 11 of 251 states, the same numbers at a fraction
     of the cost."""
     trajectory = agent.imagine_to_goals(agent_state, start_latent, candidates, planner_cfg.horizon, key)
     last = planner_cfg.use_last_steps
