@@ -13,6 +13,7 @@ network distillation (backward exploration policy). Settings and sources: baseli
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import flax.linen as nn
@@ -25,16 +26,32 @@ from morefree_jax.baselines.config import ClassifierConfig, RNDConfig
 from morefree_jax.networks import NetState, gradient_update, init_net_state
 
 
+def _torch_linear_init(fan_in: int):
+    """PyTorch's default nn.Linear initialisation, U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weights and bias
+    (kaiming_uniform with a = sqrt(5)): MEDAL's discriminator and DI-engine's RND networks keep it."""
+    limit = 1.0 / math.sqrt(fan_in)
+
+    def init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
+        return jax.random.uniform(key, shape, dtype, -limit, limit)
+
+    return init
+
+
 class _MLP(nn.Module):
-    """ReLU after every layer but the last."""
+    """PyTorch-initialised Linear layers with a ReLU after each but the last; relu_output: after the last
+    too, as DI-engine's FCEncoder (the RND target and predictor) applies its activation after every layer."""
 
     widths: Sequence[int]
+    relu_output: bool = False
 
     @nn.compact
     def __call__(self, x):
-        for width in self.widths[:-1]:
-            x = nn.relu(nn.Dense(width)(x))
-        return nn.Dense(self.widths[-1])(x)
+        for index, width in enumerate(self.widths):
+            init = _torch_linear_init(x.shape[-1])
+            x = nn.Dense(width, kernel_init=init, bias_init=init)(x)
+            if self.relu_output or index < len(self.widths) - 1:
+                x = nn.relu(x)
+        return x
 
 
 # ---- the goal classifier (VICE, on MEDAL's discriminator template) ------------------------------
@@ -94,7 +111,7 @@ class RNDState:
 
 def init_rnd(cfg: RNDConfig, obs_size: int, key: jax.Array) -> RNDState:
     key_predictor, key_target = jax.random.split(key)
-    net, dummy = _MLP(cfg.hidden), jnp.zeros((1, obs_size))
+    net, dummy = _MLP(cfg.hidden, relu_output=True), jnp.zeros((1, obs_size))
     return RNDState(predictor=init_net_state(net.init(key_predictor, dummy), optax.adam(cfg.lr)),
                     target=net.init(key_target, dummy), mean=jnp.zeros(obs_size), var=jnp.ones(obs_size),
                     count=jnp.asarray(1e-4))  # DI-engine's RunningMeanStd epsilon
@@ -112,7 +129,7 @@ def observe(state: RNDState, obs: jax.Array) -> RNDState:
 def _errors(cfg: RNDConfig, predictor_params, state: RNDState, obs: jax.Array) -> jax.Array:
     """Per-sample squared prediction error averaged over the features, on whitened, clipped inputs."""
     whitened = jnp.clip((obs - state.mean) / jnp.sqrt(state.var + 1e-8), -cfg.clip, cfg.clip)
-    net = _MLP(cfg.hidden)
+    net = _MLP(cfg.hidden, relu_output=True)
     target = jax.lax.stop_gradient(net.apply(state.target, whitened))
     return jnp.mean((net.apply(predictor_params, whitened) - target) ** 2, axis=-1)
 
