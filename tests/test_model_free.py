@@ -24,7 +24,7 @@ from experiments import train as train_cli
 from morefree_jax import loop
 from morefree_jax.baselines import rewards
 from morefree_jax.baselines import run_fns as mf_run_fns
-from morefree_jax.baselines.agents import make_model_free_agent
+from morefree_jax.baselines.agents import FORWARD, make_model_free_agent
 from morefree_jax.baselines.buffer import Stored, init_buffer, insert_where, sample
 from morefree_jax.baselines.config import ClassifierConfig, RNDConfig
 from morefree_jax.checkpoint import latest_valid
@@ -226,6 +226,25 @@ def test_oracle_episodes_end_on_success_or_timeout_without_bootstrap():
     starts = np.concatenate([[0], ends + 1])[:-1] if len(ends) else [0]
     for start, end in zip(starts, [*ends, PREFILL - 1], strict=False):  # one goal per episode
         assert np.all(goals[start:end + 1] == goals[start])
+
+
+@pytest.mark.parametrize("agent", ["oracle_sac", "r3l"])
+def test_seed_phase_acts_uniformly_for_the_oracle_and_with_the_untrained_policy_for_r3l(agent):
+    """MEDAL's oracle.py draws uniform actions in its seed frames; fbrl.py, r3l's template, acts with its
+    untrained policies."""
+    programs = mf_programs(agent)
+    initial = programs.init(jnp.stack([jax.random.PRNGKey(seed) for seed in SEEDS[agent]]))
+    start = jax.tree.map(np.array, seed_slice(initial, 0))  # copies: prefill donates its input
+    forward = seed_slice(programs.prefill(initial).replay, 0)[0]
+    # The first seed-phase action under the step's key (run_fns.step), as test_medal checks for medal.
+    key_steps = jax.random.split(start.key)[1]
+    key_act = jax.random.split(jax.random.split(key_steps, PREFILL)[0], 3)[0]
+    obs_goal = jnp.concatenate([start.stream.env_state.obs, start.stream.goal])
+    policy = programs.fns.agent.learner.act(start.agent, FORWARD, obs_goal, key_act)
+    uniform = jax.random.uniform(key_act, policy.shape, minval=-1.0, maxval=1.0)
+    expected, other = (policy, uniform) if agent == "r3l" else (uniform, policy)
+    assert np.allclose(forward.action[0], expected, atol=1e-6)
+    assert not np.allclose(forward.action[0], other, atol=1e-3)
 
 
 def test_r3l_alternates_forward_and_backward_segments():

@@ -111,7 +111,7 @@ class R3L:
     episodic = False
     num_buffers = 2
     keeps_task_goal = False  # FBRL: a fresh goal each forward segment
-    acts_in_seed_phase = False
+    acts_in_seed_phase = True  # MEDAL's fbrl.py, R3L's template here, acts with its untrained policies
 
     @property
     def periodic_metrics(self) -> dict[str, int]:

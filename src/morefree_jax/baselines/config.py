@@ -186,8 +186,8 @@ class ModelFreeConfig:
     chunk_len: env steps per compiled call (each step acts, steps the env, stores and updates once).
     replay_capacity: transitions kept per buffer (MEDAL keeps 5e6; our runs are shorter, and 1e6 of
     PointUMaze transitions is ~110 MB per buffer). switch_every: R3L's forward/backward segment length
-    (FBRL's policy_switch_frequency). The seed phase (uniform random actions, no updates) is run.prefill,
-    which these agents set to MEDAL's 10,000."""
+    (FBRL's policy_switch_frequency). The seed phase (no updates; oracle_sac acts uniformly, r3l with its
+    untrained policies) is run.prefill, which these agents set to MEDAL's 10,000."""
 
     sac: SACConfig = dataclasses.field(default_factory=SACConfig)
     classifier: ClassifierConfig = dataclasses.field(default_factory=ClassifierConfig)

@@ -3,7 +3,7 @@
 serve both.
 
     fns = make_model_free_fns(config, env)       # config.run.agent: oracle_sac, r3l or medal
-    state = fns.prefill(fns.init(key))           # the seed phase: uniform random actions, no updates
+    state = fns.prefill(fns.init(key))           # the seed phase: no updates (acting: agent's choice)
     state, metrics = fns.collect(state)          # one fused chunk: act, one SAC update, env step, store
 
 `collect` is the whole training step: each of its `config.baseline.chunk_len` env steps, inside one
