@@ -2,9 +2,10 @@
 
 Body, joints, actuators and contact parameters follow the mrl ant used by PEG (reference/envs.md section
 8): 8 motors with ctrl range +-30 (actions in [-1, 1] are scaled by 30), timestep 0.02, frame skip 5.
-MoReFree put the ant in a square room; the room's size is not published, so ours is [-2, 5]^2 (the start
-(0, 0) and the goal square [2, 3]^2 are at least 2 units, more than a leg span, from every wall). The walls
-are inward-facing planes that collide with the torso and the lower legs.
+MoReFree put the ant in a square room with the start (0, 0) at its centre and the goal square [2, 3]^2 in
+its top-right corner (paper, appendix and task list); the room's size is not published, so ours is
+[-4, 4]^2, the goal square 1 unit (more than a leg's reach along x or y) from the north and east walls. The
+walls are inward-facing planes that collide with the torso and the lower legs.
 
 Deviations, on purpose:
   - integrator: MuJoCo's default semi-implicit Euler instead of the original RK4. MJX's RK4 runs four full
@@ -38,7 +39,7 @@ from envs_mjx.base import (
 GEAR = 30.0
 INIT_QPOS = np.array([0.0, 0.0, 0.55, 1.0, 0.0, 0.0, 0.0] + [0.0] * 8, np.float32)
 GOAL_LOW, GOAL_HIGH = np.array([2.0, 2.0], np.float32), np.array([3.0, 3.0], np.float32)
-ROOM_LOW, ROOM_HIGH = -2.0, 5.0
+ROOM_LOW, ROOM_HIGH = -4.0, 4.0
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}

@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 from conftest import cached_env
 
-from envs_mjx.ant import ROOM_HIGH, ROOM_LOW
+from envs_mjx.ant import GOAL_HIGH, GOAL_LOW, ROOM_HIGH, ROOM_LOW
 
 ENV = "ant"
 
@@ -73,12 +73,20 @@ def test_zero_action_stays_upright_in_the_room_for_500_steps():
     assert np.abs(obs[-1, :2]).max() < 0.5, "with no action the ant should stay near its start"
 
 
+def test_the_start_is_the_room_centre_and_the_goal_square_its_top_right_corner():
+    """The paper: the ant starts at the centre (0, 0) of the square room; goals U(2, 3)^2, top-right."""
+    assert ROOM_LOW == -ROOM_HIGH
+    assert np.all(GOAL_LOW > 0) and np.all(GOAL_HIGH < ROOM_HIGH)
+    assert np.all(GOAL_LOW - 0.0 > ROOM_HIGH - GOAL_HIGH)  # nearer the corner walls than the start
+
+
 def test_walls_stop_a_torso_pushed_toward_them():
-    for velocity in ([8.0, 0.0], [0.0, 8.0], [-8.0, 0.0], [0.0, -8.0]):
-        xy = _trajectory(1, pushed_from=(3.5, 3.5), velocity=velocity)[1][0][:40, :2]
+    for direction in ([1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]):
+        start = (ROOM_HIGH - 1.5) * np.array(direction)  # 1.5 from the wall it is pushed at (a square room)
+        xy = _trajectory(1, pushed_from=tuple(start), velocity=8.0 * np.array(direction))[1][0][:40, :2]
         # The torso sphere (radius 0.25) may touch a wall but its centre never passes within 0.15 of it.
-        assert xy.min() > ROOM_LOW + 0.15 and xy.max() < ROOM_HIGH - 0.15, (velocity, xy.min(), xy.max())
-        assert np.abs(xy - 3.5).max() > 0.5 or velocity[0] < 0 or velocity[1] < 0, "the push did not move it"
+        assert xy.min() > ROOM_LOW + 0.15 and xy.max() < ROOM_HIGH - 0.15, (direction, xy.min(), xy.max())
+        assert np.abs(xy - start).max() > 0.5, "the push did not move it"
 
 
 def test_mjx_matches_c_mujoco_for_20_steps():
