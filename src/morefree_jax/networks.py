@@ -299,6 +299,8 @@ def make_optimizer(cfg: OptimizerConfig) -> optax.GradientTransformation:
     """DreamerV2's optimiser: global-norm clip, Adam(lr, eps), then decoupled decay p <- p - wd * p.
 
     The decay is multiplicative and not scaled by the learning rate, applied to every parameter (PEG).
+    optax adds eps to the bias-corrected sqrt(v); TF's Adam, which PEG ran, adds it to the uncorrected one,
+    so PEG's eps acts 1 / sqrt(1 - beta2^t) times larger early in training; the two converge as t grows.
     """
     return optax.chain(
         optax.clip_by_global_norm(cfg.clip),
