@@ -170,6 +170,26 @@ def test_episodic_goal_and_phases_span_the_hard_reset_segment():
     assert not np.array_equal(goals[1], goals[2])  # a new segment, a new goal
 
 
+def test_episodic_segment_starting_inside_a_chunk_takes_its_goal_at_the_next_chunk():
+    """sawyer_door's case: hard resets (every 250 here) that chunks (100) do not line up with. The reset at
+    250 falls inside the third chunk, which explores on; the fourth (from 300) chooses the new segment's goal
+    and goes until the segment's midpoint, 375."""
+    cfg = CollectConfig(go_steps=50, explore_steps=50, subgoal_threshold=5.0, hard_reset_every=250,
+                        episodic=True)
+    schedule_cfg = ScheduleConfig(kind="episodic_planner")
+    start, goals, go_steps, resets = fresh(schedule_cfg), [], [], []
+    for key in range(5):
+        stream, schedule, planner, transitions, metrics = run_chunk(10.0, cfg, schedule_cfg, start, key=key)
+        start = (stream, schedule, planner)
+        goals.append(np.asarray(stream.goal))
+        go_steps.append(float(metrics["go/steps"]))
+        resets.append(np.flatnonzero(np.asarray(transitions.reset)).tolist())
+    assert resets == [[0], [], [50], [], []]  # stream positions 0 and 250
+    assert go_steps == [100.0, 25.0, 0.0, 75.0, 0.0]
+    assert all(np.array_equal(goals[0], g) for g in goals[1:3])
+    assert not np.array_equal(goals[2], goals[3]) and np.array_equal(goals[3], goals[4])
+
+
 def test_eval_only_without_explore_goes_the_whole_chunk_to_the_eval_goal():
     cfg = CollectConfig(go_steps=100, explore_steps=0, subgoal_threshold=5.0, hard_reset_every=10**6,
                         explore=False)

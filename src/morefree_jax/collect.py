@@ -22,8 +22,9 @@ has been in (a velocity box of +-10 where the data sits near 0 would be out of d
 Early switch threshold: `subgoal_threshold`, per task (the task's `default_config`, run.subgoal_threshold).
 A task's own success radius decides the logged `go/reached` (env.success during the go phase).
 
-Episodic PEG (`episodic=True`): the goal is chosen once per hard-reset segment; the go phase spans the
-first half of the segment and the explore phase the rest, carried across chunks.
+Episodic PEG (`episodic=True`): the goal is chosen once per hard-reset segment, at the first chunk that
+starts in it; the go phase lasts until the segment's midpoint and the explore phase the rest, carried
+across chunks.
 """
 
 from __future__ import annotations
@@ -67,9 +68,6 @@ def collect_config_for(env, schedule: ScheduleConfig, explore: bool, subgoal_thr
     go_steps = length // 2 if explore else length
     episodic = schedule.kind == "episodic_planner"
     reset_every = hard_reset_every or env.hard_reset_every
-    if episodic and reset_every % length:
-        raise ValueError(f"episodic PEG needs hard_reset_every ({reset_every}) to be a multiple of the "
-                         f"chunk length {length}")
     return CollectConfig(go_steps, length - go_steps, float(subgoal_threshold), int(reset_every), explore,
                          episodic)
 
@@ -263,7 +261,10 @@ def _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream
         return stream.replace(goal=goal, go_active=jnp.ones((), bool),
                               go_steps_left=jnp.asarray(cfg.go_steps, jnp.int32)), schedule, planner, metrics
     into_segment = stream.steps % cfg.hard_reset_every
-    new_goal = (into_segment == 0) | (schedule.chunk == 0)
+    # The first chunk that starts in a new segment chooses its goal: on the segment's first step when chunks
+    # line up with the resets, else up to chunk_len - 1 steps after a reset that fell inside the previous
+    # chunk (sawyer_door: 2e5 is no multiple of 300), whose remaining steps explored on from the reset state.
+    new_goal = (into_segment < cfg.chunk_len) | (schedule.chunk == 0)
 
     def choose_for_segment(operand):
         stream, schedule, planner = operand
