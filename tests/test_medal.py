@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from envs_mjx.tabletop import INITIAL_STATE
 from morefree_jax import loop
 from morefree_jax.baselines import demos as demo_files
 from morefree_jax.baselines import rewards
+from morefree_jax.baselines import run_fns as mf_run_fns
 from morefree_jax.baselines.agents import BACKWARD, FORWARD
 from morefree_jax.baselines.buffer import init_buffer, sample_from
 from morefree_jax.baselines.config import ModelFreeConfig
@@ -79,6 +81,27 @@ def test_negatives_come_from_past_the_demonstrations():
     assert set(np.asarray(drawn.obs[:, 0]).tolist()) == {-7.0}
     wrapped = visited.replace(count=jnp.asarray(61))  # the ring overwrote demonstrations: all slots count
     assert len(set(np.asarray(sample_from(wrapped, jax.random.PRNGKey(2), 300, start=40).obs[:, 0]))) > 1
+
+
+def test_visitation_counts_the_stream_not_the_demonstrations():
+    """The heatmap and task-relevant share are where the stream went: demonstration rows (task-relevant
+    here) are left out, the forward ones written to both buffers not counted twice, until the ring wraps."""
+    config = mf_config("medal", "steps=200")
+    medal = MEDAL(ModelFreeConfig(), env(), synthetic_demos())
+    assert medal.demo_rows == (20, 40)
+    empty = tuple(init_buffer(60, env().observation_size, env().action_size) for _ in range(2))
+    far = np.array([2.0, 2.0, 2.4, 2.4, INITIAL_STATE[4], INITIAL_STATE[5]], np.float32)
+    assert not bool(env().task_relevant(jnp.asarray(far))) and bool(env().task_relevant(INITIAL_STATE))
+    buffers = []
+    for buffer, demos in zip(medal.fill_buffers(empty, jax.random.PRNGKey(0)), medal.demo_rows, strict=True):
+        obs = buffer.obs.at[:demos].set(INITIAL_STATE).at[demos:demos + 10].set(far)
+        buffers.append(buffer.replace(obs=obs, count=jnp.asarray(demos + 10)))
+    parts = mf_run_fns._Parts(config, env(), medal)
+    fraction, histogram = parts.visitation(tuple(buffers))
+    assert float(fraction) == 0.0 and float(jnp.sum(histogram)) == 20.0  # 10 stream rows per buffer
+    wrapped = (buffers[0], buffers[1].replace(count=jnp.asarray(61)))  # the demonstrations overwritten
+    fraction, histogram = parts.visitation(wrapped)
+    assert float(jnp.sum(histogram)) == 10 + 60 and float(fraction) == pytest.approx(40 / 70)  # all 60 rows
 
 
 def test_discriminator_reward_rises_on_demonstration_states():

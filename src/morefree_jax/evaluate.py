@@ -93,11 +93,15 @@ def success_per_goal(result: EvalResult, goal_dims) -> list[dict]:
     return rows
 
 
-def visitation(env, replay, bins: int) -> tuple[jax.Array, jax.Array]:
+def visitation(env, replay, bins: int, skip_rows: int = 0) -> tuple[jax.Array, jax.Array]:
     """Over the transitions in the replay: the fraction that is task-relevant (near an initial state or an
-    evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation bounds."""
+    evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation bounds.
+    skip_rows: leading rows that the stream did not visit (MEDAL's demonstrations, written first); once the
+    ring has wrapped they are overwritten and every row counts."""
     capacity = replay.obs.shape[0]
-    filled = jnp.arange(capacity) < jnp.minimum(replay.count, capacity)
+    first = jnp.where(replay.count > capacity, 0, skip_rows)
+    rows = jnp.arange(capacity)
+    filled = (rows >= first) & (rows < jnp.minimum(replay.count, capacity))
     total = jnp.maximum(jnp.sum(filled), 1)
     relevant = jax.vmap(env.task_relevant)(replay.obs)
     fraction = jnp.sum(relevant & filled) / total

@@ -74,6 +74,7 @@ class OracleSAC:
     keeps_task_goal = False  # every episode draws its goal
     acts_in_seed_phase = False  # MEDAL's oracle.py: uniform random actions
     periodic_metrics = {}  # metrics logged every n steps: none
+    demo_rows = (0,)  # leading rows per buffer that hold demonstrations
 
     def fill_buffers(self, buffers, key):
         # No demonstrations. baselines.md section 2 says MEDAL's oracle.py loads the forward demos when a
@@ -112,6 +113,7 @@ class R3L:
     num_buffers = 2
     keeps_task_goal = False  # FBRL: a fresh goal each forward segment
     acts_in_seed_phase = True  # MEDAL's fbrl.py, R3L's template here, acts with its untrained policies
+    demo_rows = (0, 0)
 
     @property
     def periodic_metrics(self) -> dict[str, int]:

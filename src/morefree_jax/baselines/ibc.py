@@ -50,6 +50,7 @@ class IBCLearner:
     config: IBCConfig
     env: Any
     task: IBCTask
+    demo_rows = (0, 0)  # no demonstrations
 
     @property
     def masks(self) -> tuple[jax.Array, jax.Array]:

@@ -83,6 +83,11 @@ class MEDAL:
         return self.env.eval_goals(key)
 
     @property
+    def demo_rows(self) -> tuple[int, int]:
+        """Leading rows of the forward and backward buffers that fill_buffers wrote demonstrations into."""
+        return len(self.demos["forward"].actions), self.backward_demo_count
+
+    @property
     def backward_demo_count(self) -> int:
         return sum(len(demo.actions) for demo in self.demos.values())
 

@@ -97,6 +97,12 @@ def _store(buffers: tuple[TransitionBuffer, ...], pending: _Pending) -> tuple[Tr
                  for index, buffer in enumerate(buffers))
 
 
+def _stream_rows(buffer: TransitionBuffer, demo_rows: int) -> jax.Array:
+    """The rows evaluate.visitation counts: the filled ones past the demonstrations until the ring wraps."""
+    demos = jnp.where(buffer.count > buffer.capacity, 0, jnp.minimum(demo_rows, buffer.size))
+    return (buffer.size - demos).astype(jnp.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Parts:
     config: Any
@@ -222,9 +228,12 @@ class _Parts:
         return evaluation_metrics(result), result
 
     def visitation(self, replay: tuple[TransitionBuffer, ...]):
-        """Over all buffers: the task-relevant share and the xy histogram (evaluate.visitation)."""
-        parts = [visitation(self.env, buffer, self.config.run.visitation_bins) for buffer in replay]
-        sizes = [buffer.size.astype(jnp.float32) for buffer in replay]
+        """Over all buffers, the stream's own transitions (no demonstrations): the task-relevant share and the
+        xy histogram (evaluate.visitation)."""
+        bins = self.config.run.visitation_bins
+        buffers = list(zip(replay, self.learner.demo_rows, strict=True))
+        parts = [visitation(self.env, buffer, bins, skip) for buffer, skip in buffers]
+        sizes = [_stream_rows(buffer, skip) for buffer, skip in buffers]
         fraction = sum(f * s for (f, _), s in zip(parts, sizes, strict=True)) / jnp.maximum(sum(sizes), 1.0)
         return fraction, sum(histogram for _, histogram in parts)
 
