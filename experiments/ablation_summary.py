@@ -98,6 +98,7 @@ def figure(rows: list[dict], summary: list[dict], new_figure):
     tasks = sorted({r["task"] for r in rows})
     ax.set(xticks=positions, ylabel="final success / morefree's",
            title=f"ablations, normalised final performance ({', '.join(tasks)})")
-    ax.set_xticklabels([s["agent"] for s in summary], rotation=20, fontsize=8)
+    # Bars may rest on different tasks (a variant counts where it ran): each label says on how many.
+    ax.set_xticklabels([f"{s['agent']} ({s['tasks']})" for s in summary], rotation=20, fontsize=8)
     ax.title.set_fontsize(9)
     return fig

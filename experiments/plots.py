@@ -16,8 +16,9 @@ agents'), groups them by task and agent, and writes to --out, per task (PNG and 
                            (*) regions marked; the maze walls for PointUMaze
   <task>_back_starts       where successful "back" chunks started: the 100 locations before each, shaded by
                            how long the agent / object rested there (agents with Back-and-Forth Go-Explore)
-and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps) per task and
-agent, mean +- standard error over seeds, seed count, and the commits of the code that wrote the runs.
+and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps; each agent at
+its latest evaluation at or before a mark) per task and agent, mean +- standard error over seeds, seed count,
+and the commits of the code that wrote the runs.
 With --window START:STOP also <task>_window.csv / .md: each seed's mean success over its evaluations in
 that range, mean +- standard error over seeds (agents whose every seed has evaluated at STOP).
 Across tasks, where morefree and at least one ablation variant (rf_peg, mf_task_only, mf_no_bfge,

@@ -139,13 +139,23 @@ def curve(group: list[RunRecord], key: str) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def default_marks(groups, task: str, count: int = 4) -> list[int]:
-    """`count` evenly spaced evaluation steps up to the furthest step every run of `task` has evaluated."""
-    steps = sorted(set.intersection(*(set(curve(g, "eval/success")[0]) for (t, _), g in groups.items()
-                                      if t == task)))
-    if not steps:
+    """`count` evenly spaced step marks up to the furthest step every agent of `task` has evaluated (all
+    seeds), each moved down to the nearest step some agent evaluated. Agents may evaluate at different steps
+    (ibc, from its own seed phase): results_rows takes each one's latest evaluation at or before a mark."""
+    evaluated = [curve(g, "eval/success")[0].tolist() for (t, _), g in groups.items() if t == task]
+    if not evaluated or not all(evaluated):
         return []
-    targets = [steps[-1] * (i + 1) / count for i in range(count)]
+    end, steps = min(s[-1] for s in evaluated), sorted(set().union(*evaluated))
+    targets = [end * (i + 1) / count for i in range(count)]
     return sorted({max(s for s in steps if s <= target) for target in targets if steps[0] <= target})
+
+
+def step_at_mark(group: list[RunRecord], mark: int) -> int | None:
+    """The group's latest evaluation (every seed's) at or before `mark`; None if it did not reach the mark."""
+    steps = curve(group, "eval/success")[0].tolist()
+    if not steps or steps[-1] < mark or steps[0] > mark:
+        return None
+    return max(s for s in steps if s <= mark)
 
 
 RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_stderr", "final_success_mean",
@@ -153,12 +163,14 @@ RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_std
 
 
 def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
-    """One row per (task, agent, step mark) the group reached: success (any step) and at the last step of
-    the evaluation episodes, task-relevant share of the replay; mean and standard error over seeds."""
+    """One row per (task, agent, step mark) the group reached, at its latest evaluation at or before the
+    mark (`step`): success (any step) and at the last step of the evaluation episodes, task-relevant share
+    of the replay; mean and standard error over seeds."""
     rows = []
     for (task, agent), group in sorted(groups.items()):
-        for step in marks.get(task, []):
-            if any(step not in run.steps or "eval/success" not in run.steps[step] for run in group):
+        for mark in marks.get(task, []):
+            step = step_at_mark(group, mark)
+            if step is None:
                 continue
             at = [run.steps[step] for run in group]
             success = mean_stderr([r["eval/success"] for r in at])

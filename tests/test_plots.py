@@ -111,6 +111,23 @@ def test_default_marks_are_evaluated_steps(runs):
     assert run_groups.default_marks(groups, "point_umaze", count=3) == list(STEPS)
 
 
+def test_agents_evaluated_at_other_steps_get_rows_at_their_latest_evaluation_before_each_mark(runs):
+    """ibc evaluates from its own seed phase (steps ending in 800 here): the default marks are not empty and
+    its rows sit at its last evaluation at or before each mark; a mark past its last one gets no row."""
+    for seed in (0, 1):
+        write_run(runs / "point_umaze" / "ibc" / f"seed{seed}", "point_umaze", "ibc", seed, [0.0, 0.5, 1.0])
+        metrics = runs / "point_umaze" / "ibc" / f"seed{seed}" / "metrics.jsonl"
+        lines = [json.loads(line) for line in metrics.read_text().splitlines()]
+        shifted = [{**line, "step": line["step"] - 1700} for line in lines]
+        metrics.write_text("".join(json.dumps(line) + "\n" for line in shifted))
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    marks = run_groups.default_marks(groups, "point_umaze", count=3)
+    assert marks == [800, 3300, 5800]  # up to ibc's last evaluation, 5,800
+    rows = {(r["agent"], r["step"]) for r in run_groups.results_rows(groups, {"point_umaze": [*marks, 7500]})}
+    assert rows == {("ibc", 800), ("ibc", 3300), ("ibc", 5800), ("morefree", 2500), ("morefree", 5000),
+                    ("morefree", 7500), ("rf_peg", 2500), ("rf_peg", 5000), ("rf_peg", 7500)}
+
+
 def test_no_run_found_is_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert plots.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
