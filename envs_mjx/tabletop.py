@@ -115,9 +115,11 @@ class Tabletop(ResetFreeEnv):
 
     def evaluation_goals(self, rng: jax.Array, num_episodes: int) -> jax.Array:
         """The four goals in turn (the paper: "four goal locations are sampled in turn"; EARL's
-        get_next_goal cycles its list), from the first, so 10 episodes see them 3, 3, 2, 2 times."""
-        del rng
-        return jnp.asarray(GOAL_STATES)[jnp.arange(num_episodes) % len(GOAL_STATES)]
+        get_next_goal cycles its list, carrying on from one evaluation to the next), from a goal drawn with
+        `rng`: 10 episodes see them 3, 3, 2, 2 times, and which two get 3 changes between evaluations, so
+        over a run the goals weigh the same on average (from the first each time, the first two had 60%)."""
+        first = jax.random.randint(rng, (), 0, len(GOAL_STATES))
+        return jnp.asarray(GOAL_STATES)[(first + jnp.arange(num_episodes)) % len(GOAL_STATES)]
 
     def initial_states(self, rng: jax.Array) -> jax.Array:
         del rng  # a single fixed initial state, as in EARL
