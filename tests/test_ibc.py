@@ -110,7 +110,7 @@ def hand_made_buffer():
     return buffer
 
 
-def test_her_relabels_with_future_goals_of_the_same_segment_and_keeps_a_fifth():
+def test_her_relabels_with_strictly_later_goals_of_the_same_segment_and_keeps_a_fifth():
     buffer = hand_made_buffer()
     assert int(buffer.committed) == 4 and int(buffer.count) == 7 and buffer.segment_end[0] == 3
     success = lambda obs, goal: jnp.abs(obs[0] - goal[0]) < 0.5  # noqa: E731
@@ -120,14 +120,18 @@ def test_her_relabels_with_future_goals_of_the_same_segment_and_keeps_a_fifth():
     assert set(obs_x.tolist()) == {0.0, 1.0, 2.0, 3.0}  # segment B is still open: never drawn
     relabelled, original = slice(0, 800), slice(800, 1000)
     assert np.all(goal_x[original] == 100.0) and np.all(batch.reward[original] == -1.0)
-    assert np.all(goal_x[relabelled] >= next_x[relabelled]) and np.all(goal_x[relabelled] <= 4.0)
+    assert np.all(goal_x[relabelled] <= 4.0)
     np.testing.assert_array_equal(batch.reward, np.where(goal_x == next_x, 0.0, -1.0))
     np.testing.assert_array_equal(batch.obs[:, 3], 0.0)  # masked goal dim
     assert np.all(batch.not_done == 1.0)  # IBC never masks the bootstrap
-    # A transition at x = 3 (the segment's last) can only be relabelled with its own next state.
-    assert np.all(goal_x[relabelled][obs_x[relabelled] == 3.0] == 4.0)
+    # IBC's "future" is a strictly later transition's next state: x + 2 .. 4 for x = 0..2; the segment's
+    # last transition (x = 3) has none and takes its own next state.
+    last = obs_x[relabelled] == 3.0
+    assert np.all(goal_x[relabelled][~last] > next_x[relabelled][~last])
+    assert np.all(goal_x[relabelled][last] == 4.0)
+    assert set(goal_x[relabelled][obs_x[relabelled] == 0.0].tolist()) == {2.0, 3.0, 4.0}
     reached = np.mean(batch.reward[relabelled] == 0.0)
-    assert 0.35 < reached < 0.65  # E[1 / (4 - x)] over x = 0..3 = 0.52
+    assert 0.18 < reached < 0.32  # only the last transition reaches its relabelled goal: 1 / 4
 
 
 # ---- the curriculum ------------------------------------------------------------------------------
@@ -208,8 +212,8 @@ def test_backward_runs_only_after_a_failed_forward_segment():
     def switch(direction, success, segment_step):  # one compile serves every case
         stream = state.stream.replace(direction=direction, segment_step=segment_step)
         end, reset = parts.segment_end(stream, success)
-        following, _ = parts.next_segment(stream, state.curriculum, stream.env_state, success, end, reset,
-                                          jax.random.PRNGKey(1))
+        following = parts.next_segment(stream, state.curriculum, stream.env_state, success, end, reset,
+                                       jax.random.PRNGKey(1))
         return end, following
 
     for (direction, success, segment_step), (ends, next_direction) in SWITCH_CASES:
@@ -217,10 +221,138 @@ def test_backward_runs_only_after_a_failed_forward_segment():
                                 jnp.asarray(segment_step, jnp.int32))
         assert bool(end) == ends and int(following.direction) == next_direction
         assert int(following.segment_step) == (0 if ends else segment_step + 1)
-        if ends and next_direction == BACKWARD:  # a proprioceptive goal near the slot's start: gripper xy
-            start = state.curriculum.backward_slots[state.curriculum.slot]
-            noise = parts.curriculum.task.backward_noise
-            assert np.all(np.abs(following.goal[:2] - start[:2]) <= noise + 1e-6)
+        if ends and next_direction == BACKWARD:  # a slot's start; Tabletop's noise is on the mug, not xy
+            starts = np.asarray(state.curriculum.backward_slots[:, :2])
+            assert np.any(np.all(starts == np.asarray(following.goal[:2]), axis=1))
+
+
+def test_forward_agent_samples_half_the_batch_and_backward_all_of_it(monkeypatch):
+    """IBC's ForwardBackwardReplayBufferWrapper.sample: int(rl_batch_size / 2) forward, all of it backward."""
+    env = envs_mjx.make("tabletop")
+    config = IBCConfig(sac=dataclasses.replace(IBCConfig().sac, hidden_dim=8, feature_dim=4, batch_size=64))
+    learner = IBCLearner(config, env, ibc_task(env))
+    buffers = tuple(her.init_segment_buffer(16, env.observation_size, env.action_size) for _ in range(2))
+    state = learner.init(jax.random.PRNGKey(0))
+    seen = {}
+    real_sample = her.sample_her
+
+    def spy(buffer, key, batch, relabel, success_fn, goal_mask):
+        seen["forward" if success_fn == env.success else "backward"] = batch  # the task's test: forward
+        return real_sample(buffer, key, batch, relabel, success_fn, goal_mask)
+
+    monkeypatch.setattr("morefree_jax.baselines.ibc.sample_her", spy)
+    jax.eval_shape(learner.update, state, buffers, jnp.asarray(FORWARD), jax.random.PRNGKey(1))
+    assert seen == {"forward": 32, "backward": 64}
+
+
+def curriculum_of(name: str, **config):
+    env, ibc = envs_mjx.make(name), IBCConfig(**config)
+    return Curriculum(env, ibc_task(env, ibc.segment_length), ibc, 0.99)
+
+
+def many_backward_goals(curriculum, state, obs, count: int = 4000) -> np.ndarray:
+    keys = jax.random.split(jax.random.PRNGKey(7), count)
+    return np.asarray(jax.jit(jax.vmap(lambda k: curriculum.backward_goal(state, obs, k)))(keys))
+
+
+def test_backward_goal_draws_its_own_slot_and_keeps_a_reached_second_draw():
+    # Tabletop: the backward test reads the gripper xy [0:2]; the noise goes on the mug [2:4].
+    curriculum = curriculum_of("tabletop", pool_size=4, slots=4)
+    state = curriculum.init(jax.random.PRNGKey(0))
+    grippers = jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    state = state.replace(backward_slots=state.backward_slots.at[:, :2].set(grippers))
+    far = jnp.array([-2.0, -2.0, 0.0, 0.0, -1.0, -1.0])
+    chosen = many_backward_goals(curriculum, state, far)[:, :2]
+    shares = [np.mean(np.all(chosen == g, axis=1)) for g in np.asarray(grippers)]
+    assert all(0.2 < share < 0.3 for share in shares)  # uniform over all four slots, not one paired slot
+    # The state already reaches slot 0: a first draw of it is drawn again, a second one stands (1/16).
+    at_slot_0 = far.at[:2].set(0.0)
+    chosen = many_backward_goals(curriculum, state, at_slot_0)[:, :2]
+    kept = np.mean(np.all(chosen == 0.0, axis=1))
+    assert 0.04 < kept < 0.09
+
+
+def test_backward_goal_noise_is_gaussian_with_the_curriculum_std_on_the_task_dims():
+    # point_umaze: N(0, 0.3) on the point xy (IBC's MatchSampler.add_noise), not uniform +-0.1.
+    curriculum = curriculum_of("point_umaze", pool_size=4, slots=4)
+    state = curriculum.init(jax.random.PRNGKey(0))
+    start = jnp.array([4.0, 0.0, 0.5, 0.0, 0.0, 0.0])
+    state = state.replace(backward_slots=jnp.broadcast_to(start, state.backward_slots.shape))
+    goals = many_backward_goals(curriculum, state, jnp.array([0.0, 8.0, 0.0, 0.0, 0.0, 0.0]))
+    offsets = goals - np.asarray(start)
+    np.testing.assert_allclose(offsets[:, :2].std(axis=0), 0.3, rtol=0.1)
+    assert np.all(offsets[:, 2:] == 0.0)
+    # Tabletop: the mug entries get N(0, 0.1), the gripper entries none.
+    curriculum = curriculum_of("tabletop", pool_size=4, slots=4)
+    state = curriculum.init(jax.random.PRNGKey(0))
+    start = jnp.array([0.5, 0.5, 1.0, 1.0, -1.0, -1.0])
+    state = state.replace(backward_slots=jnp.broadcast_to(start, state.backward_slots.shape))
+    offsets = many_backward_goals(curriculum, state, jnp.array([-2.0, -2.0, 0.0, 0.0, -1.0, -1.0])) - start
+    np.testing.assert_allclose(offsets[:, 2:4].std(axis=0), 0.1, rtol=0.1)
+    assert np.all(offsets[:, [0, 1, 4, 5]] == 0.0)
+
+
+def test_target_initial_states_get_uniform_noise_once_or_per_matching_in_earl_tasks():
+    curriculum = curriculum_of("point_umaze")
+    state = curriculum.init(jax.random.PRNGKey(0))
+    # initial states are U(-0.1, 0.1) poses with zero velocity; IBC adds U(-0.1, 0.1) once more, on all
+    offsets = np.asarray(state.target_init[:, 3:])
+    assert np.all(np.abs(offsets) <= 0.1 + 1e-6) and np.abs(offsets).max() > 0.05
+    slot_init = curriculum.slot_initial_states(state, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(slot_init, state.target_init)  # K = slots = 50: fixed pairs
+    curriculum = curriculum_of("tabletop")
+    state = curriculum.init(jax.random.PRNGKey(0))
+    first, second = (curriculum.slot_initial_states(state, jax.random.PRNGKey(k)) for k in (1, 2))
+    initial = np.asarray(curriculum.env.initial_states(jax.random.PRNGKey(0)))
+    assert first.shape == (50, 6) and not np.allclose(first, second)  # fresh per slot and matching
+    assert np.all(np.abs(np.asarray(first) - initial) <= 0.05 + 1e-6)
+
+
+def matched_with_one_trajectory(name: str, trajectory: np.ndarray, stored_dims):
+    """A curriculum of pool 8 and 4 slots after a matching with `trajectory` (L, O) as its only entry, its
+    achieved goals the entries `stored_dims`."""
+    curriculum = curriculum_of(name, pool_size=8, slots=4, segment_length=len(trajectory))
+    state = curriculum.init(jax.random.PRNGKey(0))
+    stored = np.asarray(trajectory)[:, list(stored_dims)]
+    state = state.replace(pool_goals=state.pool_goals.at[0].set(stored),
+                          pool_lengths=state.pool_lengths.at[0].set(len(trajectory)),
+                          pool_first=state.pool_first.at[0].set(trajectory[0]), pool_count=jnp.asarray(1))
+    value_fn = lambda obs, goal, key: jnp.zeros(obs.shape[0])  # noqa: E731
+    return curriculum, curriculum.match(state, value_fn, jax.random.PRNGKey(1))
+
+
+def test_matching_pads_a_young_pool_so_one_trajectory_serves_every_slot():
+    # point_umaze: the point walks (0, 0) -> (4, 0) in 5 steps.
+    steps = np.linspace(0.0, 1.0, 5)[:, None]
+    trajectory = np.concatenate([4.0 * steps, np.zeros((5, 5))], axis=1).astype(np.float32)
+    _, state = matched_with_one_trajectory("point_umaze", trajectory, (0, 1))
+    # IBC's TrajectoryPool.pad repeats the one trajectory: every slot's backward goal is its first state,
+    # every forward goal one of its points (none falls back to a target pair).
+    np.testing.assert_array_equal(state.backward_slots, np.broadcast_to(trajectory[0], (4, 6)))
+    for goal in np.asarray(state.forward_slots)[:, :2]:
+        assert np.any(np.all(np.isclose(trajectory[:, :2], goal), axis=1))
+
+
+def tabletop_trajectory() -> np.ndarray:
+    """The mug carried from (2.5, 0) to (0, 2.5) in 5 steps with the gripper holding it (entries 4, 5 = 0)."""
+    steps = np.linspace(0.0, 1.0, 5)[:, None]
+    mug = (1 - steps) * np.array([2.5, 0.0]) + steps * np.array([0.0, 2.5])
+    return np.concatenate([mug, mug, np.zeros((5, 2))], axis=1).astype(np.float32)
+
+
+def test_earl_forward_goals_are_whole_states_in_the_agent_input_and_the_curriculum():
+    """IBC's EARL observation is [state, goal state]: the forward agent sees every goal entry there
+    (env_utils.py), only the desired goal's entries (env.goal_dims) on the other tasks."""
+    for name, seen in (("tabletop", range(6)), ("sawyer_door", range(7)), ("push", (3, 4, 5))):
+        env = envs_mjx.make(name)
+        learner = IBCLearner(IBCConfig(), env, ibc_task(env))
+        size = env.observation_size
+        goal_part = learner.policy_input(FORWARD, jnp.zeros(size), jnp.arange(1.0, size + 1))[size:]
+        assert np.flatnonzero(np.asarray(goal_part)).tolist() == list(seen), name
+    # The curriculum keeps whole states too: Tabletop's matched goals carry the trajectory's attachment
+    # entries (4, 5), which env.goal_dims leave out.
+    _, state = matched_with_one_trajectory("tabletop", tabletop_trajectory(), range(6))
+    np.testing.assert_array_equal(np.asarray(state.forward_slots)[:, 4:], 0.0)
 
 
 def stream_directions(state) -> tuple[np.ndarray, np.ndarray]:

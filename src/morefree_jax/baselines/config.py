@@ -130,9 +130,9 @@ class RNDConfig:
 
 def _ibc_sac() -> SACConfig:
     """baselines.md 4.1 (IBC `ibc.py`, `config_default.yaml`): 3 x 512 heads, orthogonal init, log-std
-    tanh-squashed into [-10, 2], lr 1e-4, batch 512, alpha0 0.5 with the clipped plain step, target entropy
-    -|A|, actor and alpha every 2 updates, target every 2 with tau 0.01, loss MSE1 + MSE2, reward in {-1, 0}
-    unscaled."""
+    tanh-squashed into [-10, 2], lr 1e-4, batch 512 (the forward agent takes half: IBCConfig), alpha0 0.5
+    with the clipped plain step, target entropy -|A|, actor and alpha every 2 updates, target every 2 with
+    tau 0.01, loss MSE1 + MSE2, reward in {-1, 0} unscaled."""
     return SACConfig(hidden_dim=512, hidden_depth=3, weight_init="orthogonal", log_std_squash=True,
                      log_std_min=-10.0, log_std_max=2.0, lr=1e-4, batch_size=512, init_temperature=0.5,
                      alpha_update="clipped_step", target_entropy_per_dim=-1.0, actor_update_every=2,
@@ -148,8 +148,11 @@ class IBCConfig:
     forward trajectories (`pool_length` 1000); slots: curriculum goals (`num_episodes` 50); match_first /
     match_every: the matching runs at forward segment 5 and every 20 (`hgg_sampler_update_frequency`);
     cost_c / cost_l: HGG's c 3 and L 5; value_samples: actions averaged in a goal's value (10);
-    goal_draws: curriculum draws before falling back to a task goal (2). segment_length: None takes the
-    task's (baselines/ibc_tasks.py); set, it replaces it (short segments for tests)."""
+    goal_draws: curriculum draws of a goal the current state does not already reach (2); when all are
+    reached a forward goal falls back to a task goal, a backward goal keeps the last draw (IBC's train.py).
+    sac.batch_size: `rl_batch_size`, the backward agent's batch; the forward agent's is half of it (IBC's
+    ForwardBackwardReplayBufferWrapper). segment_length: None takes the task's (baselines/ibc_tasks.py);
+    set, it replaces it (short segments for tests)."""
 
     sac: SACConfig = dataclasses.field(default_factory=_ibc_sac)
     random_steps: int = 400
@@ -176,6 +179,8 @@ class IBCConfig:
             raise ValueError(f"segment_length must be > 0, got {self.segment_length}")
         if not 0.0 <= self.her_relabel <= 1.0:
             raise ValueError(f"her_relabel must be in [0, 1], got {self.her_relabel}")
+        if self.sac.batch_size < 2:  # the forward agent samples half a batch
+            raise ValueError(f"sac.batch_size must be >= 2, got {self.sac.batch_size}")
 
 
 @dataclasses.dataclass(frozen=True)

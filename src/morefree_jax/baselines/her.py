@@ -85,20 +85,29 @@ def end_segment_where(buffer: SegmentBuffer, flag) -> SegmentBuffer:
                           segments=buffer.segments + flag.astype(jnp.int32))
 
 
+def future_positions(position, end, key) -> jax.Array:
+    """Per transition at `position` of a segment ending at `end`: a uniform draw from position + 1 .. end,
+    or position itself when it is the segment's last (IBC's HindsightExperienceReplayWrapperVer2 maps each
+    transition to the indices after it and falls back to its own next observation when there are none)."""
+    later = end - position
+    offset = 1 + jnp.floor(jax.random.uniform(key, position.shape) * later).astype(jnp.int32)
+    # A uniform draw of exactly 1.0 is impossible, float rounding up to `later + 1` is not.
+    return jnp.where(later > 0, jnp.minimum(position + offset, end), position)
+
+
 def sample_her(buffer: SegmentBuffer, key: jax.Array, batch: int, relabel: float, success_fn,
                goal_mask: jax.Array) -> SACBatch:
     """`batch` committed transitions drawn uniformly with replacement; the first round(relabel * batch)
-    get the next observation of a uniformly drawn later-or-same step of their segment as goal (HER's
-    "future"), the rest keep theirs. reward = success_fn(next_obs, goal) - 1. The networks see
-    obs ++ goal * goal_mask (the goal's relevant dims only)."""
+    get the next observation of a uniformly drawn strictly later transition of their segment as goal
+    (HER's "future"; a segment's last transition, which has none, takes its own), the rest keep theirs.
+    reward = success_fn(next_obs, goal) - 1. The networks see obs ++ goal * goal_mask (the goal's relevant
+    dims only)."""
     key_index, key_future = jax.random.split(key)
     low = buffer.oldest
     position = low + jax.random.randint(key_index, (batch,), 0, jnp.maximum(buffer.committed - low, 1))
     slot = position % buffer.capacity
     end = buffer.segment_end[buffer.segment[slot] % buffer.capacity]
-    future = position + jnp.floor(jax.random.uniform(key_future, (batch,)) * (end - position + 1)).astype(
-        jnp.int32)
-    future = jnp.minimum(future, end)  # uniform draws of exactly 1.0 are impossible, float rounding is not
+    future = future_positions(position, end, key_future)
     relabelled = jnp.arange(batch) < round(relabel * batch)
     goal = jnp.where(relabelled[:, None], buffer.next_obs[future % buffer.capacity], buffer.goal[slot])
     next_obs = buffer.next_obs[slot]

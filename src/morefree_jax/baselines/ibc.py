@@ -8,11 +8,13 @@ its own hindsight replay, updated once per env step only while acting.
     v = learner.forward_value(state, obs, goal, key)          # the curriculum's V (mean of 10 actions)
 
 Goals are full observation vectors (goal space = observation space) but each agent sees only its part:
-the network input is obs ++ goal * mask, the forward mask on env.goal_dims (IBC's desired goal), the
-backward mask on the task's proprioceptive dims (IBC's backward_proprioceptive_only). Both inputs have
-one width, so one network shape serves both agents and acting selects parameters, not networks.
-Forward success is the task's test; backward success is |proprio(obs) - proprio(goal)| < the task's
-backward threshold. Rewards are success - 1 ({-1, 0}), recomputed at sampling (baselines/her.py).
+the network input is obs ++ goal * mask, the forward mask on ibc_tasks.forward_goal_dims (IBC's desired
+goal: the whole goal state in the EARL tasks, env.goal_dims elsewhere), the backward mask on the task's
+proprioceptive dims (IBC's backward_proprioceptive_only). Both inputs have one width, so one network shape
+serves both agents and acting selects parameters, not networks. Forward success is the task's test;
+backward success is |proprio(obs) - proprio(goal)| < the task's backward threshold. Rewards are
+success - 1 ({-1, 0}), recomputed at sampling (baselines/her.py). Each update draws half a batch for the
+forward agent and a whole one for the backward agent (batch_size).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from flax import struct
 from morefree_jax.baselines import sac
 from morefree_jax.baselines.config import IBCConfig
 from morefree_jax.baselines.her import SegmentBuffer, sample_her
-from morefree_jax.baselines.ibc_tasks import IBCTask
+from morefree_jax.baselines.ibc_tasks import IBCTask, forward_goal_dims, proprio_reached
 from morefree_jax.baselines.run_fns import ForwardPolicy
 from morefree_jax.batching import lazy_cond
 
@@ -55,7 +57,8 @@ class IBCLearner:
     @property
     def masks(self) -> tuple[jax.Array, jax.Array]:
         size = self.env.observation_size
-        return dims_mask(size, self.env.goal_dims), dims_mask(size, self.task.proprio_dims)
+        return (dims_mask(size, forward_goal_dims(self.task, self.env)),
+                dims_mask(size, self.task.proprio_dims))
 
     def init(self, key) -> IBCState:
         key_forward, key_backward = jax.random.split(key)
@@ -67,8 +70,7 @@ class IBCLearner:
         """The direction's success test (obs, goal) -> bool."""
         if direction == FORWARD:
             return self.env.success
-        dims = jnp.asarray(self.task.proprio_dims)
-        return lambda obs, goal: jnp.linalg.norm(obs[dims] - goal[dims]) < self.task.backward_threshold
+        return lambda obs, goal: proprio_reached(self.task, obs, goal)
 
     def policy_input(self, direction, obs, goal) -> jax.Array:
         forward_mask, backward_mask = self.masks
@@ -79,6 +81,13 @@ class IBCLearner:
                               state.forward.actor.params, state.backward.actor.params)
         return sac.act(self.config.sac, params, self.policy_input(direction, obs, goal), key, deterministic)
 
+    def batch_size(self, direction: int) -> int:
+        """Transitions per update of the direction's agent. IBC's ForwardBackwardReplayBufferWrapper.sample
+        hands the forward agent int(rl_batch_size / 2) and the backward agent all of it (baselines.md 4.1
+        lists 512 for both; the source halves the forward one)."""
+        full = self.config.sac.batch_size
+        return full // 2 if direction == FORWARD else full
+
     def update(self, state: IBCState, buffers: tuple[SegmentBuffer, SegmentBuffer], direction, key):
         """The acting agent's SAC step on a HER batch of its own replay, if that replay holds an ended
         segment -> (state, metrics, updated?)."""
@@ -86,7 +95,7 @@ class IBCLearner:
 
         def step_of(index: int):
             def step():
-                batch = sample_her(buffers[index], key_sample, self.config.sac.batch_size,
+                batch = sample_her(buffers[index], key_sample, self.batch_size(index),
                                    self.config.her_relabel, self.success(index), self.masks[index])
                 agent = state.forward if index == FORWARD else state.backward
                 agent, metrics = sac.update(self.config.sac, agent, batch, key_update)
@@ -118,7 +127,7 @@ class IBCLearner:
 
 @dataclasses.dataclass(frozen=True)
 class IBCForwardPolicy(ForwardPolicy):
-    """The forward agent for evaluate_policy: deterministic tanh(mean), goal masked to env.goal_dims."""
+    """The forward agent for evaluate_policy: deterministic tanh(mean), goal masked as in training."""
 
     def act(self, agent_state, latent, prev_action, obs, goal, key, mode):
         return self.learner.act(agent_state, FORWARD, obs, goal, key, deterministic=True), latent

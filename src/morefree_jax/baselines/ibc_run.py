@@ -10,8 +10,8 @@ Each step: act (uniform random during the first `random_steps` of the stream), s
 transition into the acting direction's replay, extend the forward trace, update the acting agent once.
 A segment ends on its direction's success or after the task's segment length (or at a hard reset, the
 only env reset). Then, IBC's no_backward_if_forward_succeed: a successful forward segment is followed by
-a new forward goal; a failed one by one backward segment; a backward segment by forward. Forward goals
-come from the curriculum, backward goals from the curriculum slot of the preceding forward goal.
+a new forward goal; a failed one by one backward segment; a backward segment by forward. Both goals come
+from the curriculum, each from its own uniform draw of a slot (IBC's train.py).
 """
 
 from __future__ import annotations
@@ -73,13 +73,13 @@ class IBCParts(ModelFreeParts):
         capacity, size = self.config.baseline.replay_capacity, self.env.observation_size
         curriculum = self.curriculum.init(key_curriculum)
         env_state = self.env.reset(key_reset)
-        goal, slot = self.curriculum.forward_goal(curriculum, env_state.obs, key_goal)
+        goal = self.curriculum.forward_goal(curriculum, env_state.obs, key_goal)
         stream = IBCStream(env_state=env_state, goal=goal, task_goal=goal,
                            direction=jnp.asarray(FORWARD, jnp.int32),
                            segment_step=jnp.zeros((), jnp.int32), steps=jnp.zeros((), jnp.int32))
         buffers = tuple(init_segment_buffer(capacity, size, self.env.action_size) for _ in range(2))
         return IBCRunState(agent=self.learner.init(key_agent), replay=buffers, stream=stream,
-                           curriculum=curriculum.replace(slot=slot), key=key_run,
+                           curriculum=curriculum, key=key_run,
                            back_starts=init_back_starts())
 
     def run_steps(self, state: IBCRunState, length: int, learn: bool):
@@ -113,7 +113,7 @@ class IBCParts(ModelFreeParts):
             agent, metrics, updated = self.learner.update(agent, buffers, stream.direction, key_update)
         record = {"success": success, "end": end, "direction": stream.direction, "updated": updated,
                   **metrics}
-        stream, curriculum = self.next_segment(stream, curriculum, env_state, success, end, reset, key_next)
+        stream = self.next_segment(stream, curriculum, env_state, success, end, reset, key_next)
         return (agent, buffers, stream, curriculum), record
 
     def segment_end(self, stream: IBCStream, success):
@@ -132,7 +132,7 @@ class IBCParts(ModelFreeParts):
         ended = lambda: self.curriculum.end_forward(curriculum, length, value_fn, key)  # noqa: E731
         return lazy_cond(forward & end, ended, lambda: curriculum)
 
-    def next_segment(self, stream: IBCStream, curriculum, env_state, success, end, reset, key):
+    def next_segment(self, stream: IBCStream, curriculum, env_state, success, end, reset, key) -> IBCStream:
         """After an end: forward again after a successful forward segment, a backward segment, or a hard
         reset; backward after a failed forward segment; a fresh goal of the new direction's kind."""
         key_reset, key_forward, key_backward = jax.random.split(key, 3)
@@ -140,16 +140,14 @@ class IBCParts(ModelFreeParts):
         failed_forward = (stream.direction == FORWARD) & ~success & ~reset
         after_end = jnp.where(failed_forward, BACKWARD, FORWARD)
         direction = jnp.where(end, after_end, stream.direction).astype(jnp.int32)
-        forward_goal, slot = self.curriculum.forward_goal(curriculum, env_state.obs, key_forward)
-        backward_goal = self.curriculum.backward_goal(curriculum, key_backward)
+        forward_goal = self.curriculum.forward_goal(curriculum, env_state.obs, key_forward)
+        backward_goal = self.curriculum.backward_goal(curriculum, env_state.obs, key_backward)
         fresh_goal = jnp.where(direction == FORWARD, forward_goal, backward_goal)
-        slot = jnp.where(end & (direction == FORWARD), slot, curriculum.slot)
         new_forward = end & (direction == FORWARD)
-        stream = IBCStream(env_state=env_state, goal=jnp.where(end, fresh_goal, stream.goal),
-                           task_goal=jnp.where(new_forward, forward_goal, stream.task_goal),
-                           direction=direction, segment_step=jnp.where(end, 0, stream.segment_step + 1),
-                           steps=stream.steps + 1)
-        return stream, curriculum.replace(slot=slot)
+        return IBCStream(env_state=env_state, goal=jnp.where(end, fresh_goal, stream.goal),
+                         task_goal=jnp.where(new_forward, forward_goal, stream.task_goal),
+                         direction=direction, segment_step=jnp.where(end, 0, stream.segment_step + 1),
+                         steps=stream.steps + 1)
 
     def chunk_metrics(self, state: IBCRunState, records: dict) -> dict:
         forward = (records.pop("direction") == FORWARD).astype(jnp.float32)
