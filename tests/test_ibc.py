@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from envs_mjx.tabletop import INITIAL_STATE
 from experiments import train as train_cli
 from morefree_jax import loop
 from morefree_jax.baselines import curriculum as curriculum_lib
@@ -290,6 +291,25 @@ def test_backward_goal_noise_is_gaussian_with_the_curriculum_std_on_the_task_dim
     offsets = many_backward_goals(curriculum, state, jnp.array([-2.0, -2.0, 0.0, 0.0, -1.0, -1.0])) - start
     np.testing.assert_allclose(offsets[:, 2:4].std(axis=0), 0.1, rtol=0.1)
     assert np.all(offsets[:, [0, 1, 4, 5]] == 0.0)
+
+
+def test_noised_forward_goals_are_clipped_as_ibc_clips_them():
+    # Tabletop, through the whole draw: the mug near two table edges, N(0, 0.1) noise, clipped to +-2.8.
+    curriculum = curriculum_of("tabletop", pool_size=4, slots=4)
+    state = curriculum.init(jax.random.PRNGKey(0))
+    slot_goal = jnp.array([0.0, 0.0, 2.75, -2.75, -1.0, -1.0])
+    state = state.replace(forward_slots=jnp.broadcast_to(slot_goal, state.forward_slots.shape))
+    obs = jnp.asarray(INITIAL_STATE)  # far from the slot goal: the first draw stands
+    keys = jax.random.split(jax.random.PRNGKey(7), 2000)
+    mugs = np.asarray(jax.jit(jax.vmap(lambda k: curriculum.forward_goal(state, obs, k)))(keys))[:, 2:4]
+    assert np.all(np.abs(mugs) <= 2.8 + 1e-6) and mugs.std(axis=0).min() > 0.03
+    assert np.mean(np.isclose(mugs[:, 0], 2.8)) > 0.2 and np.mean(np.isclose(mugs[:, 1], -2.8)) > 0.2
+    # push: the block into IBC's box and onto the table (clip_forward alone: no Fetch curriculum to build).
+    env = envs_mjx.make("push")
+    push = Curriculum(env, ibc_task(env), IBCConfig(), 0.99)
+    outside = jnp.zeros(env.observation_size).at[3:6].set(jnp.array([1.6, 0.5, 0.47]))
+    block = np.asarray(push.clip_forward(outside))[3:6]
+    np.testing.assert_allclose(block, [1.49786948, 0.59894948, 0.43], atol=1e-6)
 
 
 def test_target_initial_states_get_uniform_noise_once_or_per_matching_in_earl_tasks():

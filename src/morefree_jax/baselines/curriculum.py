@@ -276,16 +276,23 @@ class Curriculum:
         return state.replace(forward_slots=forward, backward_slots=backward, matches=state.matches + 1)
 
     def forward_goal(self, state: CurriculumState, obs, key) -> jax.Array:
-        """A uniform slot's goal + Gaussian noise on the task's noise dims, drawn up to goal_draws times
-        until obs does not already satisfy it; else a task goal (IBC's train.py)."""
+        """A uniform slot's goal + Gaussian noise on the task's noise dims, clipped to the task's
+        forward_goal_box, drawn up to goal_draws times until obs does not already satisfy it; else a task
+        goal (IBC's train.py)."""
         keys = jax.random.split(key, 2 * self.config.goal_draws + 1)
         noise_dims = self.goal_dims[jnp.asarray(self.task.curriculum_noise_dims)]
         goal = self.env.eval_goals(keys[-1])
         for draw in reversed(range(self.config.goal_draws)):  # the first unsatisfied draw wins
             candidate_slot = jax.random.randint(keys[2 * draw], (), 0, self.config.slots)
             noise = self.task.curriculum_noise * jax.random.normal(keys[2 * draw + 1], noise_dims.shape)
-            candidate = state.forward_slots[candidate_slot].at[noise_dims].add(noise)
+            candidate = self.clip_forward(state.forward_slots[candidate_slot].at[noise_dims].add(noise))
             goal = jnp.where(self.env.success(obs, candidate), goal, candidate)
+        return goal
+
+    def clip_forward(self, goal) -> jax.Array:
+        """goal with the task's forward_goal_box applied (IBC clips its noised forward goals per task)."""
+        for index, low, high in self.task.forward_goal_box:
+            goal = goal.at[index].set(jnp.clip(goal[index], low, high))
         return goal
 
     def backward_goal(self, state: CurriculumState, obs, key) -> jax.Array:

@@ -44,7 +44,11 @@ class IBCTask(NamedTuple):
     num_targets: K target pairs; earl: IBC's EARL tasks (K = 2 {initial, goal}, K = 5 {initial, 4 goals}):
     the first target's desired goal is the initial state, the forward goal is the whole state
     (forward_goal_dims), and every matching draws each slot's initial state afresh with new noise (train.py
-    resets its hgg env per slot there; elsewhere the K pairs and their noise are drawn once)."""
+    resets its hgg env per slot there; elsewhere the K pairs and their noise are drawn once);
+    forward_goal_box: (observation index, low, high) clips of a noised forward goal (IBC's
+    MatchSampler.add_noise: Tabletop's positions to its table, Sawyer Door's handle height, the Fetch
+    block to IBC's goal box and, for push, to the table; none on PointUMaze, nor on the tasks IBC never
+    ran: the hard Fetch variants, Ant)."""
 
     segment_length: int
     proprio_dims: tuple[int, ...]
@@ -59,11 +63,15 @@ class IBCTask(NamedTuple):
     corridor: tuple[tuple[float, float], ...] = ()
     corridor_points: int = 0
     corridor_noise: float = 0.0
+    forward_goal_box: tuple[tuple[int, float, float], ...] = ()
 
 
 _FETCH = IBCTask(segment_length=50, proprio_dims=(0, 1, 2), backward_threshold=0.05, init_noise=0.05,
                  curriculum_noise=0.03, curriculum_noise_dims=(0, 1, 2), backward_noise_dims=(0, 1, 2),
                  pool_move=0.01, num_targets=50, earl=False)
+
+# IBC's Fetch clip box of a forward (block) goal, world coordinates: x, y +- 0.15 around its gripper start.
+_FETCH_BLOCK_XY = ((3, 1.19786948, 1.49786948), (4, 0.59894948, 0.89894948))
 
 IBC_TASKS: dict[str, IBCTask] = {
     "point_umaze": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.6, init_noise=0.1,
@@ -74,13 +82,15 @@ IBC_TASKS: dict[str, IBCTask] = {
     # EARL: the backward noise lands on the mug (IBC's add_noise on goal[2:4]), not on the gripper.
     "tabletop": IBCTask(segment_length=100, proprio_dims=(0, 1), backward_threshold=0.2, init_noise=0.05,
                         curriculum_noise=0.1, curriculum_noise_dims=(2, 3), backward_noise_dims=(2, 3),
-                        pool_move=0.01, num_targets=5, earl=True),
+                        pool_move=0.01, num_targets=5, earl=True,
+                        forward_goal_box=tuple((index, -2.8, 2.8) for index in range(4))),
     # EARL: the backward noise lands on the handle xy (IBC's add_noise on goal[4:6]), not on the hand.
     "sawyer_door": IBCTask(segment_length=200, proprio_dims=(0, 1, 2), backward_threshold=0.05,
                            init_noise=0.05, curriculum_noise=0.005, curriculum_noise_dims=(0, 1),
-                           backward_noise_dims=(4, 5), pool_move=0.01, num_targets=2, earl=True),
-    "push": _FETCH,
-    "pick_place": _FETCH,
+                           backward_noise_dims=(4, 5), pool_move=0.01, num_targets=2, earl=True,
+                           forward_goal_box=((6, 0.1, 0.11),)),
+    "push": _FETCH._replace(forward_goal_box=(*_FETCH_BLOCK_XY, (5, 0.42, 0.43))),  # on the table
+    "pick_place": _FETCH._replace(forward_goal_box=(*_FETCH_BLOCK_XY, (5, 0.42, 1.0))),
     "push_hard": _FETCH,
     "pick_place_hard": _FETCH,
     "ant": IBCTask(segment_length=200, proprio_dims=(0, 1), backward_threshold=1.0, init_noise=0.1,
