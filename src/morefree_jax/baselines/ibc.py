@@ -9,12 +9,13 @@ its own hindsight replay, updated once per env step only while acting.
 
 Goals are full observation vectors (goal space = observation space) but each agent sees only its part:
 the network input is obs ++ goal * mask, the forward mask on ibc_tasks.forward_goal_dims (IBC's desired
-goal: the whole goal state in the EARL tasks, env.goal_dims elsewhere), the backward mask on the task's
-proprioceptive dims (IBC's backward_proprioceptive_only). Both inputs have one width, so one network shape
-serves both agents and acting selects parameters, not networks. Forward success is the task's test;
-backward success is |proprio(obs) - proprio(goal)| < the task's backward threshold. Rewards are
-success - 1 ({-1, 0}), recomputed at sampling (baselines/her.py). Each update draws half a batch for the
-forward agent and a whole one for the backward agent (batch_size).
+goal: the whole goal state in the EARL tasks, env.goal_dims elsewhere), the backward mask on
+ibc_tasks.backward_goal_dims (the whole goal state in the EARL tasks, the proprioceptive dims elsewhere;
+IBC's backward_proprioceptive_only makes only its success test proprioceptive there). Both inputs have
+one width, so one network shape serves both agents and acting selects parameters, not networks. Forward
+success is the task's test; backward success is |proprio(obs) - proprio(goal)| < the task's backward
+threshold. Rewards are success - 1 ({-1, 0}), recomputed at sampling (baselines/her.py). Each update draws
+half a batch for the forward agent and a whole one for the backward agent (batch_size).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from flax import struct
 from morefree_jax.baselines import sac
 from morefree_jax.baselines.config import IBCConfig
 from morefree_jax.baselines.her import SegmentBuffer, sample_her
-from morefree_jax.baselines.ibc_tasks import IBCTask, forward_goal_dims, proprio_reached
+from morefree_jax.baselines.ibc_tasks import IBCTask, backward_goal_dims, forward_goal_dims, proprio_reached
 from morefree_jax.baselines.run_fns import ForwardPolicy
 from morefree_jax.batching import lazy_cond
 
@@ -58,7 +59,7 @@ class IBCLearner:
     def masks(self) -> tuple[jax.Array, jax.Array]:
         size = self.env.observation_size
         return (dims_mask(size, forward_goal_dims(self.task, self.env)),
-                dims_mask(size, self.task.proprio_dims))
+                dims_mask(size, backward_goal_dims(self.task, self.env)))
 
     def init(self, key) -> IBCState:
         key_forward, key_backward = jax.random.split(key)

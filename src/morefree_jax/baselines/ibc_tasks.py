@@ -124,6 +124,14 @@ def forward_goal_dims(task: IBCTask, env) -> tuple[int, ...]:
     return tuple(range(env.observation_size)) if task.earl else tuple(int(d) for d in env.goal_dims)
 
 
+def backward_goal_dims(task: IBCTask, env) -> tuple[int, ...]:
+    """The observation indices of a backward goal that the backward agent sees: the whole state in the EARL
+    tasks (IBC's backward goal there is a trajectory's whole first state, its desired goal the whole goal
+    state; only the success test is proprioceptive), the proprioceptive dims elsewhere (IBC's backward
+    env's desired goal is the gripper or point position)."""
+    return tuple(range(env.observation_size)) if task.earl else tuple(task.proprio_dims)
+
+
 def proprio_reached(task: IBCTask, obs, goal):
     """The backward success test: the proprioceptive parts closer than task.backward_threshold."""
     dims = jnp.asarray(task.proprio_dims)
