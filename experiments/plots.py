@@ -152,9 +152,10 @@ def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
     return np.nansum(distances < radius, axis=1) / len(trajectory)
 
 
-def _load_xy(path) -> np.ndarray:
+def _load_back_starts(path) -> tuple[np.ndarray, int]:
+    """(xy (n, 100, 2), the step the file was saved at): each seed keeps its newest successful back chunks."""
     with np.load(path) as data:
-        return data["xy"]
+        return data["xy"], int(data["step"])
 
 
 def back_starts_figure(task, groups, geometry: TaskGeometry):
@@ -162,12 +163,13 @@ def back_starts_figure(task, groups, geometry: TaskGeometry):
     for (t, agent), group in sorted(groups.items()):
         files = [r.run_dir / "plots" / "back_starts.npz" for r in group]
         if t == task and any(f.exists() for f in files):
-            agents.append((agent, [_load_xy(f) for f in files if f.exists()]))
+            agents.append((agent, [_load_back_starts(f) for f in files if f.exists()]))
     if not agents:
         return None
     fig, axes = _panels(len(agents))
     radius = 0.03 * np.hypot(geometry.extent[1] - geometry.extent[0], geometry.extent[3] - geometry.extent[2])
-    for ax, (agent, per_seed) in zip(axes, agents, strict=True):
+    for ax, (agent, loaded) in zip(axes, agents, strict=True):
+        per_seed, saved = [xy for xy, _ in loaded], sorted({step for _, step in loaded})
         trajectories = np.concatenate(per_seed)
         points = trajectories.reshape(-1, 2)
         density = np.concatenate([rest_density(t, radius) for t in trajectories])
@@ -176,8 +178,10 @@ def back_starts_figure(task, groups, geometry: TaskGeometry):
         ax.scatter(*points[keep][order].T, c=density[keep][order], cmap="Reds", vmin=0, vmax=1, s=4)
         geometry.draw(ax)  # after the points, so that the start and goal markers stay visible
         seeds = f"{len(per_seed)} seed{'s' * (len(per_seed) > 1)}"
+        # Seeds save at their own latest evaluation: the title says which steps the chunks run up to.
+        at = f"{saved[0]:,}" if len(saved) == 1 else f"{saved[0]:,}-{saved[-1]:,}"
         ax.set_title(f"{agent}: {len(trajectories)} successful back chunks\n(100 steps before each, "
-                     f"{seeds})", fontsize=9)
+                     f"{seeds}, up to step {at})", fontsize=9)
     return fig
 
 

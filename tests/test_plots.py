@@ -128,6 +128,16 @@ def test_agents_evaluated_at_other_steps_get_rows_at_their_latest_evaluation_bef
                     ("morefree", 7500), ("rf_peg", 2500), ("rf_peg", 5000), ("rf_peg", 7500)}
 
 
+def test_back_starts_title_says_up_to_which_steps_the_seeds_saved(runs):
+    seed1 = runs / "point_umaze" / "morefree" / "seed1" / "plots" / "back_starts.npz"
+    with np.load(seed1) as data:
+        np.savez(seed1, xy=data["xy"], stream_step=data["stream_step"], step=np.int64(5000))
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    fig = plots.back_starts_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
+    title = fig.axes[0].get_title()
+    assert "morefree: 9 successful back chunks" in title and "3 seeds, up to step 5,000-7,500" in title
+
+
 def test_no_run_found_is_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert plots.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
