@@ -362,21 +362,18 @@ def tabletop_trajectory() -> np.ndarray:
 
 def test_earl_goals_are_whole_states_in_both_agents_inputs_and_the_curriculum():
     """IBC's EARL observation is [state, goal state]: the forward agent sees every goal entry there
-    (env_utils.py), only the desired goal's entries (env.goal_dims) on the other tasks."""
-    for name, seen in (("tabletop", range(6)), ("sawyer_door", range(7)), ("push", (3, 4, 5))):
+    (env_utils.py), only the desired goal's entries (env.goal_dims) on the other tasks. The backward agent
+    too (IBC's HER keeps the whole desired goal in its input; proprioceptive_only changes only the reward
+    there), but it sees the gripper alone on the Fetch tasks."""
+    seen_by = {"tabletop": (range(6), range(6)), "sawyer_door": (range(7), range(7)),
+               "push": ((3, 4, 5), (0, 1, 2))}
+    for name, (forward, backward) in seen_by.items():
         env = envs_mjx.make(name)
         learner = IBCLearner(IBCConfig(), env, ibc_task(env))
         size = env.observation_size
-        goal_part = learner.policy_input(FORWARD, jnp.zeros(size), jnp.arange(1.0, size + 1))[size:]
-        assert np.flatnonzero(np.asarray(goal_part)).tolist() == list(seen), name
-    # The backward agent too (IBC's HER keeps the whole desired goal in its input; proprioceptive_only
-    # changes only the reward there), but it sees the gripper alone on the Fetch tasks.
-    for name, seen in (("tabletop", range(6)), ("sawyer_door", range(7)), ("push", (0, 1, 2))):
-        env = envs_mjx.make(name)
-        learner = IBCLearner(IBCConfig(), env, ibc_task(env))
-        size = env.observation_size
-        goal_part = learner.policy_input(BACKWARD, jnp.zeros(size), jnp.arange(1.0, size + 1))[size:]
-        assert np.flatnonzero(np.asarray(goal_part)).tolist() == list(seen), name
+        for direction, seen in ((FORWARD, forward), (BACKWARD, backward)):
+            goal_part = learner.policy_input(direction, jnp.zeros(size), jnp.arange(1.0, size + 1))[size:]
+            assert np.flatnonzero(np.asarray(goal_part)).tolist() == list(seen), (name, direction)
     # The curriculum keeps whole states too: Tabletop's matched goals carry the trajectory's attachment
     # entries (4, 5), which env.goal_dims leave out.
     _, state = matched_with_one_trajectory("tabletop", tabletop_trajectory(), range(6))
