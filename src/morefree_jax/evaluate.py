@@ -93,15 +93,20 @@ def success_per_goal(result: EvalResult, goal_dims) -> list[dict]:
     return rows
 
 
-def visitation(env, replay, bins: int, skip_rows: int = 0) -> tuple[jax.Array, jax.Array]:
-    """Over the transitions in the replay: the fraction that is task-relevant (near an initial state or an
-    evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation bounds.
-    skip_rows: leading rows that the stream did not visit (MEDAL's demonstrations, written first); once the
-    ring has wrapped they are overwritten and every row counts."""
+def visited_rows(replay, skip_rows: int = 0) -> jax.Array:
+    """(capacity,) the filled rows the stream visited. skip_rows: leading rows it did not (MEDAL's
+    demonstrations, written first); once the ring has wrapped they are overwritten and every row counts."""
     capacity = replay.obs.shape[0]
     first = jnp.where(replay.count > capacity, 0, skip_rows)
     rows = jnp.arange(capacity)
-    filled = (rows >= first) & (rows < jnp.minimum(replay.count, capacity))
+    return (rows >= first) & (rows < jnp.minimum(replay.count, capacity))
+
+
+def visitation(env, replay, bins: int, skip_rows: int = 0) -> tuple[jax.Array, jax.Array]:
+    """Over the visited transitions in the replay (visited_rows): the fraction that is task-relevant (near an
+    initial state or an evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation
+    bounds."""
+    filled = visited_rows(replay, skip_rows)
     total = jnp.maximum(jnp.sum(filled), 1)
     relevant = jax.vmap(env.task_relevant)(replay.obs)
     fraction = jnp.sum(relevant & filled) / total

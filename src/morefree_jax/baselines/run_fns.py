@@ -27,7 +27,7 @@ from morefree_jax.baselines import sac
 from morefree_jax.baselines.agents import FORWARD, make_model_free_agent
 from morefree_jax.baselines.buffer import Stored, TransitionBuffer, init_buffer, insert_where
 from morefree_jax.batching import lazy_cond
-from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation
+from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation, visited_rows
 
 
 @struct.dataclass
@@ -95,12 +95,6 @@ class _Pending(NamedTuple):
 def _store(buffers: tuple[TransitionBuffer, ...], pending: _Pending) -> tuple[TransitionBuffer, ...]:
     return tuple(insert_where(buffer, pending.transition, pending.valid & (pending.direction == index))
                  for index, buffer in enumerate(buffers))
-
-
-def _stream_rows(buffer: TransitionBuffer, demo_rows: int) -> jax.Array:
-    """The rows evaluate.visitation counts: the filled ones past the demonstrations until the ring wraps."""
-    demos = jnp.where(buffer.count > buffer.capacity, 0, jnp.minimum(demo_rows, buffer.size))
-    return (buffer.size - demos).astype(jnp.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,7 +227,7 @@ class _Parts:
         bins = self.config.run.visitation_bins
         buffers = list(zip(replay, self.learner.demo_rows, strict=True))
         parts = [visitation(self.env, buffer, bins, skip) for buffer, skip in buffers]
-        sizes = [_stream_rows(buffer, skip) for buffer, skip in buffers]
+        sizes = [jnp.sum(visited_rows(buffer, skip)).astype(jnp.float32) for buffer, skip in buffers]
         fraction = sum(f * s for (f, _), s in zip(parts, sizes, strict=True)) / jnp.maximum(sum(sizes), 1.0)
         return fraction, sum(histogram for _, histogram in parts)
 
