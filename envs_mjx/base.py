@@ -14,6 +14,8 @@ The reset-free extension (design.md section 3):
   reward(obs, goal)                      dense -distance on goal_dims (for reward-using baselines)
   task_relevant(obs)                     near an initial state or an evaluation goal
   xy(obs)                                the planar position shown in visitation heatmaps
+  side_view(obs), air_height             (optional) horizontal position and height of the object, for a
+                                         side visitation heatmap where lifting matters (side_view_dims set)
   observation_bounds                     (low, high) box of plausible observations, for goal search
   eval_episode_length, hard_reset_every  episodic evaluation length, hard-reset period of the stream
   default_config()                       the task's own defaults for a training run (PEG's per-task
@@ -91,6 +93,10 @@ class ResetFreeEnv(Env, abc.ABC):
     obs_size: ClassVar[int]
     act_size: ClassVar[int]
     goal_dims: ClassVar[tuple[int, ...]]
+    # Observation indices (horizontal, height) of the side visitation view, and the height above which the
+    # object is in the air; only tasks where lifting an object matters set them (the paper's XZ heatmap).
+    side_view_dims: ClassVar[tuple[int, int] | None] = None
+    air_height: ClassVar[float | None] = None
 
     def __init__(self, eval_episode_length: int, hard_reset_every: int, success_threshold: float):
         if eval_episode_length <= 0 or hard_reset_every <= 0 or success_threshold <= 0:
@@ -161,6 +167,12 @@ class ResetFreeEnv(Env, abc.ABC):
     @abc.abstractmethod
     def xy(self, obs: jax.Array) -> jax.Array:
         """The planar position (2,) used for visitation heatmaps."""
+
+    def side_view(self, obs: jax.Array) -> jax.Array:
+        """(horizontal, height) (2,) of the side visitation heatmap; tasks with side_view_dims only."""
+        if self.side_view_dims is None:
+            raise ValueError(f"{self.name} has no side view (only tasks that set side_view_dims do)")
+        return obs[..., jnp.asarray(self.side_view_dims)]
 
     @property
     @abc.abstractmethod

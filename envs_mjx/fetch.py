@@ -68,6 +68,10 @@ from envs_mjx.base import ResetFreeEnv, distance_to_box, learner_defaults, physi
 TABLE_LOW = np.array([1.05, 0.40])
 TABLE_HIGH = np.array([1.65, 1.10])
 BLOCK_REST_Z = 0.425  # block centre resting on the table top (z 0.4)
+# "In the air" in the side visitation view: the block centre 2 cm above rest, higher than the 5 cm cube
+# reaches tipped onto an edge (1.0 cm) or balanced on a corner (1.8 cm), so only a lifted block counts.
+BLOCK_AIR_Z = BLOCK_REST_Z + 0.02
+BLOCK_SIDE_VIEW = (3, 5)  # observation indices of the block's x and z
 MAX_DISPLACEMENT = 0.05  # metres of gripper target displacement per unit action
 FINGER_CTRL_MAX = 0.05  # the joint range; the original clips at 0.2 and so overdrives the limit
 FINGER_GRASP_WIDTH = 0.0235  # finger qpos holding the 5 cm block (measured)
@@ -323,6 +327,7 @@ class FetchPush(_FetchIBC):
 
 class FetchPickPlace(_FetchIBC):
     name = "pick_place"
+    side_view_dims, air_height = BLOCK_SIDE_VIEW, BLOCK_AIR_Z
     gripper_start = PICK_PLACE_GRIPPER_START
     block_start_low, block_start_high = ibc_box(PICK_PLACE_GRIPPER_START, offset=IBC_BLOCK_OFFSET)
     goal_low, goal_high = ibc_box(PICK_PLACE_GRIPPER_START, height=IBC_AIR_HEIGHT)
@@ -345,6 +350,7 @@ class FetchPushHard(_FetchHard):
 
 class FetchPickPlaceHard(_FetchHard):
     name = "pick_place_hard"
+    side_view_dims, air_height = BLOCK_SIDE_VIEW, BLOCK_AIR_Z
     gripper_start = PUSH_GRIPPER_START  # the paper: Push (hard)'s initial state
     goal_low = HARD_BLOCK_START + np.array([-0.025, -0.025, 0.05])
     goal_high = HARD_BLOCK_START + np.array([0.025, 0.025, 0.15])

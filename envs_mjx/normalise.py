@@ -9,7 +9,7 @@ that task's planner spread (`std_scale` 0.5) is half the normalised range, and t
 reconstruction weighs every dimension by its range. Tasks that take that config (the Fetch tasks) turn it
 on with `agent.normalise_observations`; the run functions then wrap their env in this class, and every
 vector the world-model agent sees (stream, replay, goals, goal search) is normalised, while everything
-measured in the task's units (success, distances, task relevance, visitation xy) is computed on the
+measured in the task's units (success, distances, task relevance, visitation views) is computed on the
 de-normalised vectors. The physics state (`pipeline_state`) is untouched, so rendering is unchanged.
 """
 
@@ -85,3 +85,6 @@ class NormalisedObservations(Wrapper):
 
     def xy(self, obs: jax.Array) -> jax.Array:
         return self.env.xy(self.denormalise(obs))
+
+    def side_view(self, obs: jax.Array) -> jax.Array:
+        return self.env.side_view(self.denormalise(obs))

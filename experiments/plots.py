@@ -14,6 +14,9 @@ agents'), groups them by task and agent, and writes to --out, per task (PNG and 
                            have saved (--visitation-step N: at or below N, to compare agents at one step),
                            summed over seeds; step and task-relevant share in the title; start (o) and goal
                            (*) regions marked; the maze walls for PointUMaze
+  <task>_side_visitation   tasks with a side view (pick_place, pick_place_hard): the same for the block's
+                           x and height, the share of the replay with the block in the air in the title and
+                           the air height as a red line (the paper's XZ heatmap of Pick&Place (hard))
   <task>_back_starts       where successful "back" chunks started: the 100 locations before each, shaded by
                            how long the agent / object rested there (agents with Back-and-Forth Go-Explore)
 and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps; each agent at
@@ -33,6 +36,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
+from typing import NamedTuple
 
 import numpy as np
 
@@ -82,7 +86,8 @@ def curve_figure(task, groups, key, label):
 
 
 class TaskGeometry:
-    """The task's xy box, samples of its start and goal regions, and walls to draw (PointUMaze)."""
+    """The task's xy box, samples of its start and goal regions, and walls to draw (PointUMaze); for tasks
+    with a side view (envs_mjx.base: side_view_dims) its box, the samples in it and the air height."""
 
     def __init__(self, task: str, samples: int = 200):
         import jax
@@ -90,24 +95,52 @@ class TaskGeometry:
         import envs_mjx
 
         env = envs_mjx.make(task)
-        low, high = (np.asarray(env.xy(np.asarray(b, np.float32))) for b in env.observation_bounds)
-        self.extent = (low[0], high[0], low[1], high[1])
         keys = jax.random.split(jax.random.PRNGKey(0), samples)
-        self.starts = np.asarray(jax.vmap(lambda k: env.xy(env.initial_states(k)))(keys))
-        self.goals = np.asarray(jax.vmap(lambda k: env.xy(env.eval_goals(k)))(keys))
+        starts = np.asarray(jax.vmap(env.initial_states)(keys))
+        goals = np.asarray(jax.vmap(env.eval_goals)(keys))
+        views = {"xy": env.xy} if env.side_view_dims is None else {"xy": env.xy, "xz": env.side_view}
+        self.extents, self.starts, self.goals = {}, {}, {}
+        for name, view in views.items():
+            low, high = (np.asarray(view(np.asarray(b, np.float32))) for b in env.observation_bounds)
+            self.extents[name] = (low[0], high[0], low[1], high[1])
+            self.starts[name] = np.asarray(jax.vmap(view)(starts))
+            self.goals[name] = np.asarray(jax.vmap(view)(goals))
+        self.extent = self.extents["xy"]
+        self.air_height = env.air_height
         self.walls = np.zeros((0, 2, 2))
         if task == "point_umaze":
             from envs_mjx.point_umaze import wall_faces
 
             self.walls = wall_faces(radius=0.0)
 
-    def draw(self, axes):
-        for segment in self.walls:
-            axes.plot(segment[:, 0], segment[:, 1], color="0.2", linewidth=2)
-        axes.scatter(*self.starts.T, marker="o", s=12, facecolors="none", edgecolors="tab:blue",
+    def draw(self, axes, view: str = "xy"):
+        if view == "xy":
+            for segment in self.walls:
+                axes.plot(segment[:, 0], segment[:, 1], color="0.2", linewidth=2)
+        else:  # the side view: above the red line the object is in the air
+            axes.axhline(self.air_height, color="tab:red", linewidth=1.2, label="in the air above")
+        axes.scatter(*self.starts[view].T, marker="o", s=12, facecolors="none", edgecolors="tab:blue",
                      label="start")
-        axes.scatter(*self.goals.T, marker="*", s=18, color="tab:green", label="goal")
-        axes.set(xlim=self.extent[:2], ylim=self.extent[2:], aspect="equal")
+        axes.scatter(*self.goals[view].T, marker="*", s=18, color="tab:green", label="goal")
+        extent = self.extents[view]
+        axes.set(xlim=extent[:2], ylim=extent[2:], aspect="equal")
+
+
+class HeatmapView(NamedTuple):
+    """One visitation heatmap: the files runs save it in (plots/<prefix>_<step>.npy), the share shown in
+    the titles and the axes."""
+
+    name: str  # TaskGeometry's view
+    prefix: str
+    share_key: str
+    share_label: str
+    axis_labels: tuple[str, str] | None
+    legend_loc: str  # where the legend hides the least: the side view's visits lie low
+
+
+TOP_VIEW = HeatmapView("xy", "visitation", "visitation/task_relevant", "task-relevant", None, "lower right")
+SIDE_VIEW = HeatmapView("xz", "side_visitation", "visitation/in_air", "in the air", ("x", "height z"),
+                        "upper right")
 
 
 def _panels(count):
@@ -115,19 +148,19 @@ def _panels(count):
     return fig, [fig.add_subplot(1, count, i + 1) for i in range(count)]
 
 
-def _saved_visitation_steps(run) -> set[int]:
-    return {int(p.stem.split("_")[1]) for p in (run.run_dir / "plots").glob("visitation_*.npy")}
+def _saved_visitation_steps(run, prefix: str = "visitation") -> set[int]:
+    return {int(p.stem.rsplit("_", 1)[1]) for p in (run.run_dir / "plots").glob(f"{prefix}_*.npy")}
 
 
-def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = None):
-    """Per agent: the xy histogram summed over seeds at the latest step all its seeds have saved (at or
+def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = None, view=TOP_VIEW):
+    """Per agent: the view's histogram summed over seeds at the latest step all its seeds have saved (at or
     below `cap` when given, to compare agents at one step); the step is in each panel's title. Agents
     that ran for different lengths each show their latest. (figure, {agent: step}); (None, {}) if none."""
     steps = {}
     for (t, agent), group in sorted(groups.items()):
         if t != task:
             continue
-        common = set.intersection(*(_saved_visitation_steps(r) for r in group))
+        common = set.intersection(*(_saved_visitation_steps(r, view.prefix) for r in group))
         eligible = [step for step in common if cap is None or step <= cap]
         if eligible:
             steps[agent] = max(eligible)
@@ -136,13 +169,15 @@ def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = No
     fig, axes = _panels(len(steps))
     for ax, (agent, step) in zip(axes, steps.items(), strict=True):
         group = groups[task, agent]
-        histogram = sum(np.load(r.run_dir / "plots" / f"visitation_{step:09d}.npy") for r in group)
-        share = np.mean([r.steps.get(step, {}).get("visitation/task_relevant", np.nan) for r in group])
-        ax.imshow(np.log1p(histogram.T), origin="lower", extent=geometry.extent, cmap="viridis")
-        geometry.draw(ax)
+        histogram = sum(np.load(r.run_dir / "plots" / f"{view.prefix}_{step:09d}.npy") for r in group)
+        share = np.mean([r.steps.get(step, {}).get(view.share_key, np.nan) for r in group])
+        ax.imshow(np.log1p(histogram.T), origin="lower", extent=geometry.extents[view.name], cmap="viridis")
+        geometry.draw(ax, view.name)
+        if view.axis_labels:
+            ax.set(xlabel=view.axis_labels[0], ylabel=view.axis_labels[1])
         seeds = f"{len(group)} seed{'s' * (len(group) > 1)}"
-        ax.set_title(f"{agent}: task-relevant {100 * share:.1f}%\n({seeds}, step {step:,})", fontsize=9)
-    axes[0].legend(loc="lower right", fontsize=7)
+        ax.set_title(f"{agent}: {view.share_label} {100 * share:.1f}%\n({seeds}, step {step:,})", fontsize=9)
+    axes[0].legend(loc=view.legend_loc, fontsize=7)
     return fig, steps
 
 
@@ -192,9 +227,10 @@ def write_task(task, groups, out, stamp_for, visitation_cap: int | None = None) 
     for name, key, label in CURVES:
         written += save(curve_figure(task, groups, key, label), out, f"{task}_{name}", stamp)
     geometry = TaskGeometry(task)
-    fig, _ = visitation_figure(task, groups, geometry, visitation_cap)
-    if fig is not None:
-        written += save(fig, out, f"{task}_visitation", stamp)
+    for view in (TOP_VIEW, SIDE_VIEW) if geometry.air_height is not None else (TOP_VIEW,):
+        fig, _ = visitation_figure(task, groups, geometry, visitation_cap, view)
+        if fig is not None:
+            written += save(fig, out, f"{task}_{view.prefix}", stamp)
     fig = back_starts_figure(task, groups, geometry)
     if fig is not None:
         written += save(fig, out, f"{task}_back_starts", stamp)

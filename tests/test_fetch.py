@@ -183,3 +183,32 @@ def test_observation_matches_c_mujoco_sites(name):
         np.testing.assert_allclose(actual, expected, atol=2e-4)
         moving += np.abs(grip_vel).max() > 0.05
     assert moving > 3, "the checked states should include a moving gripper"
+
+
+class _Replay(NamedTuple):
+    obs: jax.Array
+    count: jax.Array
+
+
+def test_side_view_counts_the_lifted_block_in_the_air_and_the_pushed_one_not():
+    """The paper's XZ heatmap of Pick&Place (hard): blocks held at the air goals are above the air line;
+    blocks pushed into the walls (tipping included) or at rest are not; unfilled rows count nowhere."""
+    from envs_mjx.normalise import NormalisedObservations
+    from morefree_jax.evaluate import visitation
+
+    env, _, _, _, _, obs = task_rollouts("pick_place_hard")
+    lifted = obs[list(GOAL_SCENARIOS), -50:].reshape(-1, obs.shape[-1])
+    on_table = obs[[*WALL_SCENARIOS, REST_SCENARIO]].reshape(-1, obs.shape[-1])
+    rows = np.concatenate([lifted, on_table])
+    unfilled = np.full((7, obs.shape[-1]), 0.5, np.float32)
+    unfilled[:, 5] = 1.0  # would be in the air if it counted
+    replay = _Replay(jnp.asarray(np.concatenate([rows, unfilled])), jnp.asarray(len(rows)))
+    views = visitation(env, replay, bins=10)
+    assert float(views["in_air"]) == pytest.approx(len(lifted) / len(rows))
+    assert float(views["xz"].sum()) == len(rows) and float(views["xy"].sum()) == len(rows)
+    normalised = NormalisedObservations(env)
+    same = visitation(normalised, replay._replace(obs=normalised.normalise(replay.obs)), bins=10)
+    assert float(same["in_air"]) == pytest.approx(float(views["in_air"]))
+    np.testing.assert_allclose(same["xz"], views["xz"])
+    no_side_view = visitation(envs_mjx.make("push_hard"), replay, bins=10)
+    assert set(no_side_view) == {"task_relevant", "xy"}

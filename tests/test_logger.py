@@ -89,14 +89,25 @@ def test_resume_drops_lines_after_the_checkpoint_and_appends(tmp_path):
 def test_log_visitation_saves_histogram_and_summary(tmp_path):
     histogram = np.array([[1.0, 0.0], [0.0, 3.0]])
     with RunLogger(tmp_path, CONFIG, 100, progress="off") as logger:
-        record = logger.log_visitation(40, 0.25, histogram)
+        record = logger.log_visitation(40, {"task_relevant": 0.25, "xy": histogram})
     np.testing.assert_array_equal(np.load(tmp_path / "plots" / "visitation_000000040.npy"), histogram)
+    assert not list((tmp_path / "plots").glob("side_visitation_*")) and "visitation/in_air" not in record
     assert record["visitation/task_relevant"] == 0.25
     assert record["visitation/occupied_cells"] == 0.5
     expected_entropy = -(0.25 * math.log(0.25) + 0.75 * math.log(0.75)) / math.log(4)  # 0.4056
     assert record["visitation/entropy"] == pytest.approx(expected_entropy)
     logged = read_metrics(tmp_path / "metrics.jsonl")[0]
     assert logged["visitation/entropy"] == pytest.approx(expected_entropy)
+
+
+def test_log_visitation_saves_the_side_view_where_the_task_has_one(tmp_path):
+    side = np.array([[0.0, 2.0], [5.0, 1.0]])
+    views = {"task_relevant": 0.5, "xy": np.ones((2, 2)), "in_air": 0.125, "xz": side}
+    with RunLogger(tmp_path, CONFIG, 100, progress="off") as logger:
+        record = logger.log_visitation(60, views)
+    np.testing.assert_array_equal(np.load(tmp_path / "plots" / "side_visitation_000000060.npy"), side)
+    assert record["visitation/in_air"] == 0.125
+    assert read_metrics(tmp_path / "metrics.jsonl")[0]["visitation/in_air"] == 0.125
 
 
 def test_plain_progress_lines_when_not_a_tty(tmp_path, capsys):

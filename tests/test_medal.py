@@ -97,11 +97,11 @@ def test_visitation_counts_the_stream_not_the_demonstrations():
         obs = buffer.obs.at[:demos].set(INITIAL_STATE).at[demos:demos + 10].set(far)
         buffers.append(buffer.replace(obs=obs, count=jnp.asarray(demos + 10)))
     parts = mf_run_fns._Parts(config, env(), medal)
-    fraction, histogram = parts.visitation(tuple(buffers))
-    assert float(fraction) == 0.0 and float(jnp.sum(histogram)) == 20.0  # 10 stream rows per buffer
+    views = parts.visitation(tuple(buffers))
+    assert float(views["task_relevant"]) == 0.0 and float(jnp.sum(views["xy"])) == 20.0  # 10 stream rows each
     wrapped = (buffers[0], buffers[1].replace(count=jnp.asarray(61)))  # the demonstrations overwritten
-    fraction, histogram = parts.visitation(wrapped)
-    assert float(jnp.sum(histogram)) == 10 + 60 and float(fraction) == pytest.approx(40 / 70)  # all 60 rows
+    views = parts.visitation(wrapped)
+    assert float(jnp.sum(views["xy"])) == 10 + 60 and float(views["task_relevant"]) == pytest.approx(40 / 70)
 
 
 def test_discriminator_reward_rises_on_demonstration_states():

@@ -209,3 +209,29 @@ def test_agents_option_draws_only_those_agents(runs, tmp_path, capsys):
     assert plots.main([str(runs), "--out", str(out), "--agents", "r3l,ibc"]) == 2
     error = capsys.readouterr().err
     assert error == f"error: no run of r3l, ibc found below {runs} (agents there: morefree, rf_peg)\n"
+
+
+def test_pick_place_hard_gets_the_side_view_with_its_in_air_share(tmp_path):
+    """The paper's XZ heatmap: tasks with a side view draw it from side_visitation_<step>.npy with the
+    in-air share in the title; tasks without one (point_umaze) do not."""
+    root = tmp_path / "runs"
+    for seed, in_air in ((0, 0.25), (1, 0.5)):
+        run_dir = root / "pick_place_hard" / "morefree" / f"seed{seed}"
+        write_run(run_dir, "pick_place_hard", "morefree", seed, [0.0, 0.1, 0.2])
+        with open(run_dir / "metrics.jsonl", "a") as file:
+            file.write(json.dumps({"step": STEPS[-1], "visitation/in_air": in_air}) + "\n")
+        np.save(run_dir / "plots" / f"side_visitation_{STEPS[-1]:09d}.npy", np.ones((50, 50)))
+    write_run(root / "point_umaze" / "morefree" / "seed0", "point_umaze", "morefree", 0, [0.0, 0.0, 0.0])
+    out = tmp_path / "results"
+    assert plots.main([str(root), "--out", str(out)]) == 0
+    names = {path.name for path in out.iterdir()}
+    assert {"pick_place_hard_side_visitation.png", "pick_place_hard_visitation.png"} <= names
+    assert "point_umaze_side_visitation.png" not in names
+    groups = run_groups.group_runs(run_groups.find_runs(root, "pick_place_hard")[0])
+    geometry = plots.TaskGeometry("pick_place_hard")
+    fig, steps = plots.visitation_figure("pick_place_hard", groups, geometry, view=plots.SIDE_VIEW)
+    assert steps == {"morefree": STEPS[-1]}
+    assert fig.axes[0].get_title().splitlines()[0] == "morefree: in the air 37.5%"
+    # the side view's box is the block's x and height, with the air line inside it
+    low_x, high_x, low_z, high_z = geometry.extents["xz"]
+    assert low_x < 1.43 < high_x and low_z < geometry.air_height < high_z

@@ -2,7 +2,7 @@
 
     result = evaluate_policy(env, agent, agent_state, key, num_episodes=10)   # jit at the caller
     metrics = evaluation_metrics(result)
-    fraction, histogram = visitation(env, replay, bins=50)
+    views = visitation(env, replay, bins=50)   # {"task_relevant", "xy"} (+ {"in_air", "xz"}: side view)
 
 Evaluation follows PEG (agent.md 7.1): every episode starts from a fresh reset (the task's initial-state
 distribution) with a goal from the task's `evaluation_goals` (independent eval_goals draws, or the task's
@@ -102,21 +102,31 @@ def visited_rows(replay, skip_rows: int = 0) -> jax.Array:
     return (rows >= first) & (rows < jnp.minimum(replay.count, capacity))
 
 
-def visitation(env, replay, bins: int, skip_rows: int = 0) -> tuple[jax.Array, jax.Array]:
-    """Over the visited transitions in the replay (visited_rows): the fraction that is task-relevant (near an
-    initial state or an evaluation goal) and a (bins, bins) histogram of env.xy over the task's observation
-    bounds."""
-    filled = visited_rows(replay, skip_rows)
-    total = jnp.maximum(jnp.sum(filled), 1)
+def visitation(env, replay, bins: int, skip_rows: int = 0) -> dict[str, jax.Array]:
+    """Over the visited transitions in the replay (visited_rows): "task_relevant", the fraction near an
+    initial state or an evaluation goal, and "xy", a (bins, bins) histogram of env.xy over the task's
+    observation bounds. Tasks with a side view (env.side_view_dims) add "xz", the histogram of
+    env.side_view (horizontal, height), and "in_air", the fraction above env.air_height."""
+    weights = visited_rows(replay, skip_rows).astype(jnp.float32)
+    total = jnp.maximum(jnp.sum(weights), 1.0)
     relevant = jax.vmap(env.task_relevant)(replay.obs)
-    fraction = jnp.sum(relevant & filled) / total
-    xy = jax.vmap(env.xy)(replay.obs)
+    views = {"task_relevant": jnp.sum(relevant * weights) / total,
+             "xy": _histogram(env.xy, env, replay.obs, weights, bins)}
+    if env.side_view_dims is not None:
+        height = jax.vmap(env.side_view)(replay.obs)[:, 1]
+        views["in_air"] = jnp.sum((height > env.air_height) * weights) / total
+        views["xz"] = _histogram(env.side_view, env, replay.obs, weights, bins)
+    return views
+
+
+def _histogram(view, env, obs, weights, bins: int) -> jax.Array:
+    """(bins, bins) weighted histogram of view(obs) (2-D points) over the view of the observation bounds."""
+    points = jax.vmap(view)(obs)
     with jax.ensure_compile_time_eval():  # constants of the task, also when traced
-        low, high = (np.asarray(env.xy(jnp.asarray(b, jnp.float32))) for b in env.observation_bounds)
+        low, high = (np.asarray(view(jnp.asarray(b, jnp.float32))) for b in env.observation_bounds)
     box = [[low[0], high[0]], [low[1], high[1]]]
-    weights = filled.astype(jnp.float32)
-    histogram, _, _ = jnp.histogram2d(xy[:, 0], xy[:, 1], bins=bins, range=box, weights=weights)
-    return fraction, histogram
+    histogram, _, _ = jnp.histogram2d(points[:, 0], points[:, 1], bins=bins, range=box, weights=weights)
+    return histogram
 
 
 def render_episode(env, pipeline_states, episode: int = 0, width: int = 320, height: int = 240) -> np.ndarray:

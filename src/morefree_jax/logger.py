@@ -4,7 +4,7 @@
     with logger.timer("collect"):
         ...                                        # block_until_ready inside, or the time is dispatch only
     logger.log(step, {"wm/loss": 1.2, "eval/success": 0.4})
-    logger.log_visitation(step, task_relevant_fraction, xy_histogram)
+    logger.log_visitation(step, views)               # evaluate.visitation of the replay
     logger.close()
 
 provenance.jsonl gets one line per start or resume (step, code commit, host, time; provenance.py).
@@ -163,22 +163,22 @@ class RunLogger:
                 print(f"step {step}/{self.total_steps} ({percent:.1f}%) {rate} steps/s success {success}",
                       flush=True)
 
-    def log_visitation(self, step: int, task_relevant_fraction: float, xy_histogram) -> dict:
-        """Saves the 2-D visitation histogram as plots/visitation_<step>.npy and logs its summary:
-        task-relevant fraction, share of occupied cells, normalised entropy of the visitation."""
-        histogram = np.asarray(xy_histogram, dtype=np.float64)
+    def log_visitation(self, step: int, views: dict) -> dict:
+        """Saves the visitation histograms of evaluate.visitation: "xy" as plots/visitation_<step>.npy and,
+        for tasks with a side view, "xz" as plots/side_visitation_<step>.npy; logs the task-relevant share,
+        the xy histogram's share of occupied cells and normalised entropy, and "in_air" where present."""
+        histogram = np.asarray(views["xy"], dtype=np.float64)
         if histogram.ndim != 2:
-            raise ValueError(f"xy_histogram must be 2-D, got shape {histogram.shape}")
+            raise ValueError(f"the xy visitation histogram must be 2-D, got shape {histogram.shape}")
         np.save(self.plots_dir / f"visitation_{int(step):09d}.npy", histogram)
-        total = histogram.sum()
-        probabilities = histogram.ravel() / total if total > 0 else np.zeros(histogram.size)
-        nonzero = probabilities[probabilities > 0]
-        entropy = -(nonzero * np.log(nonzero)).sum() / np.log(histogram.size) if histogram.size > 1 else 0.0
-        return self.log(step, {
-            "visitation/task_relevant": float(task_relevant_fraction),
-            "visitation/occupied_cells": float(np.mean(histogram > 0)),
-            "visitation/entropy": float(entropy),
-        })
+        record = {"visitation/task_relevant": float(views["task_relevant"]),
+                  "visitation/occupied_cells": float(np.mean(histogram > 0)),
+                  "visitation/entropy": normalised_entropy(histogram)}
+        if "xz" in views:
+            side = np.asarray(views["xz"], dtype=np.float64)
+            np.save(self.plots_dir / f"side_visitation_{int(step):09d}.npy", side)
+            record["visitation/in_air"] = float(views["in_air"])
+        return self.log(step, record)
 
     def log_back_starts(self, step: int, xy, stream_step) -> None:
         """Saves the locations before each stored successful back chunk (back_starts.py) as
@@ -233,3 +233,13 @@ class RunLogger:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def normalised_entropy(histogram: np.ndarray) -> float:
+    """Entropy of the histogram's distribution over its cells, divided by the most it can be (log cells)."""
+    total = histogram.sum()
+    if histogram.size <= 1 or total <= 0:
+        return 0.0
+    probabilities = histogram.ravel() / total
+    nonzero = probabilities[probabilities > 0]
+    return float((nonzero * np.log(1.0 / nonzero)).sum() / np.log(histogram.size))  # 0.0, never -0.0

@@ -188,12 +188,11 @@ class _Driver:
                 records[index] = logger.log(steps, record)
         if crossed(self.settings.eval_every):
             eval_metrics, _ = self.programs.evaluate(state.agent, eval_keys(self.seeds, steps))
-            fractions, histograms = jax.device_get(self.programs.visitation(state.replay))
+            views = jax.device_get(self.programs.visitation(state.replay))
             eval_metrics = jax.device_get(eval_metrics)
             for index, logger in enumerate(loggers):
                 records[index].update(logger.log(steps, seed_slice(eval_metrics, index)))
-                records[index].update(logger.log_visitation(steps, float(fractions[index]),
-                                                            histograms[index]))
+                records[index].update(logger.log_visitation(steps, seed_slice(views, index)))
                 self.save_back_starts(logger, seed_slice(state.back_starts, index), steps)
         self.maybe_checkpoint(checkpointers, state, previous, steps)
         return records

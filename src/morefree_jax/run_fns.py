@@ -6,7 +6,7 @@
     state, metrics = fns.collect(state)            # one chunk of the stream (goal choice incl. PEG's search)
     state, metrics = fns.train_updates(state)      # the chunk's gradient updates in one lax.scan
     metrics, result = fns.evaluate(state.agent, key)
-    fraction, histogram = fns.visitation(state.replay)
+    views = fns.visitation(state.replay)           # evaluate.visitation: task-relevant share, heatmaps
 
 Nothing is jitted and nothing reads host state: every function works unbatched and under `jax.vmap` over
 seeds (loop.py jits them vmapped over a seed axis, in the style of purejaxrl's make_train). Everything
@@ -68,7 +68,7 @@ class RunFns(NamedTuple):
     collect: Callable  # RunState -> (RunState, metrics)
     train_updates: Callable | None  # RunState -> (RunState, metrics); None: collect also trains
     evaluate: Callable  # (AgentState, key) -> (metrics, EvalResult)
-    visitation: Callable  # ReplayState -> (task-relevant fraction, xy histogram)
+    visitation: Callable  # ReplayState -> {"task_relevant", "xy", ...} (evaluate.visitation)
     env: Any
     agent: Agent
     chunk_len: int

@@ -222,12 +222,18 @@ class _Parts:
         return evaluation_metrics(result), result
 
     def visitation(self, replay: tuple[TransitionBuffer, ...]):
-        """Over all buffers, the stream's own transitions (no demonstrations): the task-relevant share and the
-        xy histogram (evaluate.visitation)."""
+        """Over all buffers, the stream's own transitions (no demonstrations): evaluate.visitation's shares
+        weighted by each buffer's visited rows, its histograms summed."""
         bins = self.config.run.visitation_bins
         buffers = list(zip(replay, self.learner.demo_rows, strict=True))
         parts = [visitation(self.env, buffer, bins, skip) for buffer, skip in buffers]
         sizes = [jnp.sum(visited_rows(buffer, skip)).astype(jnp.float32) for buffer, skip in buffers]
-        fraction = sum(f * s for (f, _), s in zip(parts, sizes, strict=True)) / jnp.maximum(sum(sizes), 1.0)
-        return fraction, sum(histogram for _, histogram in parts)
+        total = jnp.maximum(sum(sizes), 1.0)
+
+        def combined(values):
+            if values[0].ndim == 0:  # a share of the rows: each buffer weighs by its visited rows
+                return sum(value * size for value, size in zip(values, sizes, strict=True)) / total
+            return sum(values)  # a histogram of counts
+
+        return {name: combined([part[name] for part in parts]) for name in parts[0]}
 
