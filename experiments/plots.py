@@ -227,7 +227,7 @@ def write_task(task, groups, out, stamp_for, visitation_cap: int | None = None) 
     for name, key, label in CURVES:
         written += save(curve_figure(task, groups, key, label), out, f"{task}_{name}", stamp)
     geometry = TaskGeometry(task)
-    for view in (TOP_VIEW, SIDE_VIEW) if geometry.air_height is not None else (TOP_VIEW,):
+    for view in (v for v in (TOP_VIEW, SIDE_VIEW) if v.name in geometry.extents):  # the task's views
         fig, _ = visitation_figure(task, groups, geometry, visitation_cap, view)
         if fig is not None:
             written += save(fig, out, f"{task}_{view.prefix}", stamp)
