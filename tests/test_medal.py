@@ -79,8 +79,13 @@ def test_negatives_come_from_past_the_demonstrations():
     visited = backward.replace(obs=backward.obs.at[40:50, 0].set(-7.0), count=jnp.asarray(50))
     drawn = sample_from(visited, jax.random.PRNGKey(2), 300, start=medal.backward_demo_count)
     assert set(np.asarray(drawn.obs[:, 0]).tolist()) == {-7.0}
-    wrapped = visited.replace(count=jnp.asarray(61))  # the ring overwrote demonstrations: all slots count
-    assert len(set(np.asarray(sample_from(wrapped, jax.random.PRNGKey(2), 300, start=40).obs[:, 0]))) > 1
+    # One more write wraps the ring onto slot 0: the stream's now; slots 1-39 still hold demonstrations.
+    wrapped = visited.replace(obs=visited.obs.at[0, 0].set(-3.0), count=jnp.asarray(61))
+    drawn = np.asarray(sample_from(wrapped, jax.random.PRNGKey(2), 300, start=40).obs[:, 0])
+    assert set(drawn.tolist()) == {-3.0, -7.0, 0.0}
+    overwritten = wrapped.replace(count=jnp.asarray(100))  # all 40 demonstration slots written over
+    drawn = np.asarray(sample_from(overwritten, jax.random.PRNGKey(2), 300, start=40).obs[:, 0])
+    assert np.any(drawn > 0.0) and {-3.0, -7.0, 0.0} <= set(drawn.tolist())
 
 
 def test_visitation_counts_the_stream_not_the_demonstrations():
@@ -99,8 +104,12 @@ def test_visitation_counts_the_stream_not_the_demonstrations():
     parts = mf_run_fns._Parts(config, env(), medal)
     views = parts.visitation(tuple(buffers))
     assert float(views["task_relevant"]) == 0.0 and float(jnp.sum(views["xy"])) == 20.0  # 10 stream rows each
-    wrapped = (buffers[0], buffers[1].replace(count=jnp.asarray(61)))  # the demonstrations overwritten
+    # The ring wraps onto slot 0: it counts (its row is still task-relevant here), slots 1-39 do not yet.
+    wrapped = (buffers[0], buffers[1].replace(count=jnp.asarray(61)))
     views = parts.visitation(wrapped)
+    assert float(jnp.sum(views["xy"])) == 10 + 21 and float(views["task_relevant"]) == pytest.approx(1 / 31)
+    overwritten = (buffers[0], buffers[1].replace(count=jnp.asarray(100)))  # every demonstration slot
+    views = parts.visitation(overwritten)
     assert float(jnp.sum(views["xy"])) == 10 + 60 and float(views["task_relevant"]) == pytest.approx(40 / 70)
 
 

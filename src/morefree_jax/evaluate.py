@@ -95,11 +95,12 @@ def success_per_goal(result: EvalResult, goal_dims) -> list[dict]:
 
 def visited_rows(replay, skip_rows: int = 0) -> jax.Array:
     """(capacity,) the filled rows the stream visited. skip_rows: leading rows it did not (MEDAL's
-    demonstrations, written first); once the ring has wrapped they are overwritten and every row counts."""
+    demonstrations, written first); once the ring wraps it overwrites them from row 0 on, and each
+    overwritten row counts."""
     capacity = replay.obs.shape[0]
-    first = jnp.where(replay.count > capacity, 0, skip_rows)
     rows = jnp.arange(capacity)
-    return (rows >= first) & (rows < jnp.minimum(replay.count, capacity))
+    rewritten = rows < replay.count - capacity  # written again after the ring wrapped
+    return ((rows >= skip_rows) | rewritten) & (rows < jnp.minimum(replay.count, capacity))
 
 
 def visitation(env, replay, bins: int, skip_rows: int = 0) -> dict[str, jax.Array]:

@@ -78,9 +78,13 @@ def sample(buffer: TransitionBuffer, key: jax.Array, batch: int) -> Stored:
 
 def sample_from(buffer: TransitionBuffer, key: jax.Array, batch: int, start: int) -> Stored:
     """Like sample(), from the slots written after the first `start` rows (e.g. past demonstrations
-    written first); once the ring has wrapped, every slot is past them."""
-    low = jnp.where(buffer.count > buffer.capacity, 0, jnp.clip(buffer.size - 1, 0, start))
-    index = low + jax.random.randint(key, (batch,), 0, jnp.maximum(buffer.size - low, 1))
+    written first). Once the ring wraps it writes over those rows from slot 0 on: the rewritten ones are
+    drawn too, the rest skipped. A buffer holding no more than `start` rows gives its last row."""
+    rewritten = jnp.clip(buffer.count - buffer.capacity, 0, start)
+    unwrapped_skip = jnp.clip(buffer.size - 1, 0, start)
+    skipped = jnp.where(buffer.count > buffer.capacity, start - rewritten, unwrapped_skip)
+    drawn = jax.random.randint(key, (batch,), 0, jnp.maximum(buffer.size - skipped, 1))
+    index = jnp.where(drawn < rewritten, drawn, drawn + skipped)  # past the rows still skipped
     return Stored(*(getattr(buffer, name)[index] for name in Stored._fields))
 
 
