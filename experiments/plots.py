@@ -49,10 +49,10 @@ CURVES = (("success", "eval/success", "success (any step)"),
           ("task_relevant", "visitation/task_relevant", "task-relevant share of the replay"))
 
 
-def _figure(width=6.4, height=4.0):
+def _figure(width=6.4, height=4.0, layout="constrained"):
     from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
 
-    fig = Figure(figsize=(width, height), layout="constrained")
+    fig = Figure(figsize=(width, height), layout=layout)
     fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))  # a strip at the bottom for the stamp
     return fig
 
@@ -144,7 +144,9 @@ SIDE_VIEW = HeatmapView("xz", "side_visitation", "visitation/in_air", "in the ai
 
 
 def _panels(count):
-    fig = _figure(3.2 * count + 0.4, 3.4)
+    # "compressed": the constrained layout for fixed-aspect axes (maps, heatmaps); the plain one lets their
+    # two-line titles run off the top of a row of panels.
+    fig = _figure(3.2 * count + 0.4, 3.4, layout="compressed")
     return fig, [fig.add_subplot(1, count, i + 1) for i in range(count)]
 
 

@@ -199,6 +199,22 @@ def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
     assert plots.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
 
 
+@pytest.mark.parametrize("extra_agents", [(), ("r3l", "medal", "ibc")])
+def test_heatmap_titles_and_labels_stay_inside_the_figure(runs, extra_agents):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    for agent in extra_agents:
+        write_run(runs / "point_umaze" / agent / "seed0", "point_umaze", agent, 0, [0.0, 0.0, 0.0])
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    fig, steps = plots.visitation_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
+    assert len(steps) == 2 + len(extra_agents)
+    FigureCanvasAgg(fig).draw()
+    width, height = fig.get_size_inches() * fig.dpi
+    for ax in fig.axes:
+        box = ax.get_tightbbox()  # the panel with its title, tick labels and axis labels
+        assert box.x0 >= 0 and box.y0 >= 0 and box.x1 <= width and box.y1 <= height, (ax.get_title(), box)
+
+
 def test_agents_option_draws_only_those_agents(runs, tmp_path, capsys):
     out = tmp_path / "results"
     assert plots.main([str(runs), "--out", str(out), "--agents", "rf_peg", "--marks", "7500"]) == 0
