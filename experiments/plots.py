@@ -57,10 +57,40 @@ def _figure(width=6.4, height=4.0, layout="constrained"):
     return fig
 
 
+def _stamp_lines(stamp: str, fits) -> list[str]:
+    """The stamp broken between words into lines that each fit (a word longer than a line keeps a line)."""
+    lines = []
+    for word in stamp.split(" "):
+        if lines and fits(f"{lines[-1]} {word}"):
+            lines[-1] += f" {word}"
+        else:
+            lines.append(word)
+    return lines
+
+
+def add_stamp(fig, stamp: str):
+    """The stamp in a footer strip, on as many lines as the figure's width needs (a one-panel figure is
+    narrower than a stamp listing many commits); the layout leaves the strip that high."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    text = fig.text(0.995, 0.005, stamp, ha="right", va="bottom", fontsize=6, color="0.4")
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    width = 0.99 * fig.bbox.width
+
+    def fits(line):
+        text.set_text(line)
+        return text.get_window_extent(renderer).width <= width
+
+    text.set_text("\n".join(_stamp_lines(stamp, fits)))
+    strip = max(0.04, (text.get_window_extent(renderer).height + 4) / fig.bbox.height)
+    fig.get_layout_engine().set(rect=(0, strip, 1, 1 - strip))
+    return text
+
+
 def save(fig, out: pathlib.Path, name: str, stamp: str) -> list[pathlib.Path]:
     """name.png and name.svg with the stamp in a footer and in the files' metadata (no dates: files change
     only when their content does)."""
-    fig.text(0.995, 0.005, stamp, ha="right", va="bottom", fontsize=6, color="0.4")
+    add_stamp(fig, stamp)
     paths = [out / f"{name}.png", out / f"{name}.svg"]
     fig.savefig(paths[0], dpi=120, metadata={"Description": stamp, "Software": None})
     fig.savefig(paths[1], metadata={"Description": stamp, "Date": None})

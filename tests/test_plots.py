@@ -138,6 +138,24 @@ def test_back_starts_title_says_up_to_which_steps_the_seeds_saved(runs):
     assert "morefree: 9 successful back chunks" in title and "3 seeds, up to step 5,000-7,500" in title
 
 
+@pytest.mark.parametrize("commits", [1, 12])
+def test_the_stamp_fits_under_a_one_panel_figure(runs, tmp_path, commits):
+    """A stamp listing many commits is wider than a one-panel figure: it wraps between words and the panel
+    moves up to leave it room."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    stamp = "runs: " + " ".join(f"{i:07x}+dirty" for i in range(commits)) + " · drawn: 0123456"
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    fig = plots.back_starts_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
+    text = plots.add_stamp(fig, stamp)
+    FigureCanvasAgg(fig).draw()
+    box, panel = text.get_window_extent(), fig.axes[0].get_tightbbox()
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y0 >= 0
+    assert box.y1 <= panel.y0  # below the panel's tick labels
+    assert text.get_text().replace("\n", " ") == stamp
+    assert (text.get_text().count("\n") > 0) == (commits > 1)
+
+
 def test_no_run_found_is_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert plots.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
