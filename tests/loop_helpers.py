@@ -9,6 +9,7 @@ import pathlib
 import re
 import signal
 import subprocess
+import sys
 import tempfile
 import time
 
@@ -26,6 +27,23 @@ from morefree_jax.logger import read_metrics
 # from an empty cache with the test processes in it passed on 2026-12-02.
 COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path(tempfile.gettempdir()) / f"morefree_jax_test_cache_{os.getuid()}")
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def cli_env(**extra: str) -> dict:
+    """A CLI subprocess's environment: the repository importable from any working directory, and the
+    tests' compilation cache with every program in it."""
+    return {**os.environ, "PYTHONPATH": f"{REPO / 'src'}:{REPO}",
+            "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+            **extra}
+
+
+def start_train_cli(arguments) -> subprocess.Popen:
+    """`python -m experiments.train *arguments` in the repository (stderr kept for sigkill_once_written)."""
+    return subprocess.Popen([sys.executable, "-m", "experiments.train", *arguments], cwd=REPO, env=cli_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
 
 # The run tests use tabletop, whose kinematic step compiles in ~1 s, where point_umaze's MJX physics
 # (RK4 with contacts) takes ~15 s in each of prefill, collect and evaluate (measured, debug preset): the
@@ -134,3 +152,11 @@ def assert_same_run(dir_a, state_a, dir_b, state_b) -> None:
     unequal = unequal_leaves(state_a, state_b)
     assert not unequal, f"{len(unequal)} state arrays differ: {unequal[:5]}"
     assert records_without_time(dir_a) == records_without_time(dir_b)
+
+
+def sigkilled_after(arguments, checkpoints, step: int) -> int:
+    """Starts a train CLI with `arguments`, SIGKILLs it as soon as its checkpoint at `step` is complete in
+    the `checkpoints` dir (a group's: its last seed's, which the group writes last) and returns the newest
+    step checkpointed there."""
+    sigkill_once_written(start_train_cli(arguments), checkpoints / str(step) / "files.json")
+    return max(int(p.name) for p in checkpoints.iterdir() if p.name.isdigit())

@@ -104,7 +104,7 @@ def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     """The real command: r3l (the fused model-free chunk compiles in seconds) with 2 seeds at the debug
     preset, SIGKILLed with its train process once the first chunk's checkpoint is complete, then re-run."""
-    from tests.loop_helpers import COMPILATION_CACHE, debug_args, sigkill_once_written
+    from tests.loop_helpers import cli_env, debug_args, sigkill_once_written
     from tests.test_model_free import CHUNK, MF_ARGS, PREFILL
 
     # The train arguments of test_model_free's r3l group run, so the compilation cache can serve them.
@@ -112,8 +112,7 @@ def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
               if arg.split("=")[0] not in ("env", "seed", "agent")]
     command = [sys.executable, "-m", "experiments.experiment", "task=tabletop", "agents=r3l", "seeds=0,1",
                f"steps={PREFILL + 3 * CHUNK}", "parallel=1", *passed]
-    env = {**os.environ, "PYTHONPATH": f"{REPO / 'src'}:{REPO}",
-           "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    env = cli_env()
     # Its own process group, so that killing it spares pytest (its train runs in a session of its own).
     first = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, start_new_session=True)

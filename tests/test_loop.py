@@ -41,6 +41,7 @@ from tests.loop_helpers import (
     debug_programs,
     records_without_time,
     sigkill_once_written,
+    start_train_cli,
 )
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -96,11 +97,8 @@ def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
 
 
 def _start_cli(run_dir, steps: int) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
-           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-    command = [sys.executable, "-m", "experiments.train", *debug_args(f"checkpoint_every={2 * CHUNK}"),
-               "agent=morefree", f"steps={steps}", f"run_dir={run_dir}"]
-    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    return start_train_cli([*debug_args(f"checkpoint_every={2 * CHUNK}"), "agent=morefree", f"steps={steps}",
+                            f"run_dir={run_dir}"])
 
 
 def _second_writer_is_refused(first: subprocess.Popen, run_dir) -> None:

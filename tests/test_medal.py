@@ -6,9 +6,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -28,8 +25,8 @@ from morefree_jax.baselines.medal import MEDAL
 from morefree_jax.checkpoint import latest_valid
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
-from tests.loop_helpers import COMPILATION_CACHE, assert_same_run, debug_args, sigkill_once_written
-from tests.test_model_free import CHUNK, MF_ARGS, PREFILL, REPO, SWITCH, mf_config
+from tests.loop_helpers import assert_same_run, debug_args, sigkilled_after
+from tests.test_model_free import CHUNK, MF_ARGS, PREFILL, SWITCH, mf_config
 
 ENV = "tabletop"  # loop_helpers.RUN_ENV: the fast-compiling kinematic step
 
@@ -184,13 +181,8 @@ def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_p
     assert str(three) in {p.name for p in (full_dir / "checkpoints").iterdir()}
     # A CLI run that would go on for 40 chunks is SIGKILLed once its checkpoint after chunk 1 is complete,
     # then resumed to three chunks: the same state and metrics, bit for bit.
-    env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
-           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-    command = [sys.executable, "-m", "experiments.train", *debug_args("agent=medal", *MF_ARGS),
-               f"steps={PREFILL + 40 * CHUNK}", f"run_dir={killed_dir}"]
-    process = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    sigkill_once_written(process, killed_dir / "checkpoints" / str(PREFILL + CHUNK) / "files.json")
-    done = max(int(p.name) for p in (killed_dir / "checkpoints").iterdir() if p.name.isdigit())
+    done = sigkilled_after([*debug_args("agent=medal", *MF_ARGS), f"steps={PREFILL + 40 * CHUNK}",
+                            f"run_dir={killed_dir}"], killed_dir / "checkpoints", PREFILL + CHUNK)
     assert done < three, f"killed too late: step {done}"
     loop.train(config(killed_dir, three), programs=medal_programs(), progress="off")
     (step_a, state_a), (step_b, state_b) = _final_state(full_dir), _final_state(killed_dir)

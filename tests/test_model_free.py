@@ -7,11 +7,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import os
 import pathlib
 import re
-import subprocess
-import sys
 from typing import Any
 
 import jax
@@ -32,14 +29,12 @@ from morefree_jax.config_run import resolve_config
 from morefree_jax.logger import read_metrics
 from morefree_jax.programs import seed_slice
 from tests.loop_helpers import (
-    COMPILATION_CACHE,
     assert_same_run,
     callback_primitives,
     debug_args,
-    sigkill_once_written,
+    sigkilled_after,
 )
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
 PREFILL, CHUNK, SWITCH = 100, 50, 30
 # Tiny learners and buffers; tabletop (loop_helpers.RUN_ENV) for its fast-compiling kinematic step.
 MF_ARGS = (f"prefill={PREFILL}", f"baseline.chunk_len={CHUNK}", "baseline.replay_capacity=1000",
@@ -311,15 +306,9 @@ def test_r3l_resume_after_sigkill_is_bit_exact(tmp_path):
     full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
     three = PREFILL + 3 * CHUNK
     train("r3l", full_dir, three)
-    env = {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
-           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
     group = [arg for arg in debug_args("agent=r3l", *MF_ARGS) if not arg.startswith("seed=")] + ["seeds=0,1"]
-    command = [sys.executable, "-m", "experiments.train", *group,
-               f"steps={PREFILL + 40 * CHUNK}", f"run_dir={killed_dir}"]
-    process = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    last_seed = killed_dir / f"seed{SEEDS['r3l'][-1]}"  # the group's checkpoint is complete once it has it
-    sigkill_once_written(process, last_seed / "checkpoints" / str(PREFILL + CHUNK) / "files.json")
-    done = max(int(p.name) for p in (last_seed / "checkpoints").iterdir() if p.name.isdigit())
+    done = sigkilled_after([*group, f"steps={PREFILL + 40 * CHUNK}", f"run_dir={killed_dir}"],
+                           killed_dir / f"seed{SEEDS['r3l'][-1]}" / "checkpoints", PREFILL + CHUNK)
     assert done < three, f"killed too late: step {done}"
     train("r3l", killed_dir, three)
     full_dir, killed_dir = seed_dir("r3l", full_dir, 1), seed_dir("r3l", killed_dir, 1)

@@ -32,8 +32,8 @@ from morefree_jax.programs import compile_programs, seed_slice
 from morefree_jax.seeds import parse_seeds
 from tests.loop_helpers import (
     CHUNK,
-    COMPILATION_CACHE,
     assert_same_run,
+    cli_env,
     debug_args,
     debug_config,
     debug_programs,
@@ -55,11 +55,6 @@ def _cli(run_dir, steps: int, *extra: str) -> list[str]:
             f"steps={steps}", f"run_dir={run_dir}"]
 
 
-def _cli_env(**extra) -> dict:
-    return {**os.environ, "PYTHONPATH": "src:.", "JAX_COMPILATION_CACHE_DIR": COMPILATION_CACHE,
-            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0", **extra}
-
-
 def _checkpoint(run_dir, template):
     config_dict = json.loads((pathlib.Path(run_dir) / "config.json").read_text())
     restored = latest_valid(run_dir, template, config_dict)
@@ -76,7 +71,7 @@ def _template():
 def two_seed_run(tmp_path_factory):
     """A 3-chunk CLI run of seeds 0 and 1 in one program (it compiles; later CLI runs load its cache)."""
     run_dir = tmp_path_factory.mktemp("two_seeds")
-    result = subprocess.run(_cli(run_dir, THREE_CHUNKS), cwd=REPO, env=_cli_env(), capture_output=True,
+    result = subprocess.run(_cli(run_dir, THREE_CHUNKS), cwd=REPO, env=cli_env(), capture_output=True,
                             text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-2000:]
     return run_dir
@@ -106,11 +101,11 @@ def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
 
 
 def test_sigkill_during_a_two_seed_run_resumes_bit_exact_for_both(two_seed_run, tmp_path):
-    process = subprocess.Popen(_cli(tmp_path, PREFILL + 10 * CHUNK), cwd=REPO, env=_cli_env(),
+    process = subprocess.Popen(_cli(tmp_path, PREFILL + 10 * CHUNK), cwd=REPO, env=cli_env(),
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     checkpoint = tmp_path / "seed1" / "checkpoints" / str(PREFILL + 2 * CHUNK)
     sigkill_once_written(process, checkpoint / "files.json")
-    resumed = subprocess.run(_cli(tmp_path, THREE_CHUNKS), cwd=REPO, env=_cli_env(), capture_output=True,
+    resumed = subprocess.run(_cli(tmp_path, THREE_CHUNKS), cwd=REPO, env=cli_env(), capture_output=True,
                              text=True, timeout=900)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     for seed in SEEDS:
@@ -183,7 +178,7 @@ def test_two_seeds_sharded_over_two_cpu_devices_match_one_device(tmp_path):
     output = tmp_path / "sharded.npz"
     flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
     result = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT, str(output)], cwd=REPO,
-                            env=_cli_env(XLA_FLAGS=flags), capture_output=True, text=True, timeout=900)
+                            env=cli_env(XLA_FLAGS=flags), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-2000:]
     with np.load(output) as stored:
         leaves = [stored[f"arr_{i}"] for i in range(len(stored.files))]
