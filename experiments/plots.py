@@ -49,11 +49,14 @@ CURVES = (("success", "eval/success", "success (any step)"),
           ("task_relevant", "visitation/task_relevant", "task-relevant share of the replay"))
 
 
+STAMP_STRIP = 0.04  # the least share of the figure's height kept at the bottom for the stamp (one line)
+
+
 def _figure(width=6.4, height=4.0, layout="constrained"):
     from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
 
     fig = Figure(figsize=(width, height), layout=layout)
-    fig.get_layout_engine().set(rect=(0, 0.04, 1, 0.96))  # a strip at the bottom for the stamp
+    fig.get_layout_engine().set(rect=(0, STAMP_STRIP, 1, 1 - STAMP_STRIP))
     return fig
 
 
@@ -82,7 +85,7 @@ def add_stamp(fig, stamp: str):
         return text.get_window_extent(renderer).width <= width
 
     text.set_text("\n".join(_stamp_lines(stamp, fits)))
-    strip = max(0.04, (text.get_window_extent(renderer).height + 4) / fig.bbox.height)
+    strip = max(STAMP_STRIP, (text.get_window_extent(renderer).height + 4) / fig.bbox.height)
     fig.get_layout_engine().set(rect=(0, strip, 1, 1 - strip))
     return text
 

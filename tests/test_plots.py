@@ -139,7 +139,7 @@ def test_back_starts_title_says_up_to_which_steps_the_seeds_saved(runs):
 
 
 @pytest.mark.parametrize("commits", [1, 12])
-def test_the_stamp_fits_under_a_one_panel_figure(runs, tmp_path, commits):
+def test_the_stamp_fits_under_a_one_panel_figure(runs, commits):
     """A stamp listing many commits is wider than a one-panel figure: it wraps between words and the panel
     moves up to leave it room."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
