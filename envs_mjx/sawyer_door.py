@@ -79,7 +79,9 @@ def state_vector(hand: jax.Array, opening: jax.Array, handle: jax.Array) -> jax.
     return jnp.concatenate([hand, jnp.reshape(opening, (1,)), handle])
 
 
-GOAL_HANDLE = np.asarray(handle_position(0.0))
+# handle_position(0.0) (cos 1, sin 0) in numpy, bit for bit: a jnp call here would start JAX's backend on
+# import, too early for morefree_jax.runtime.configure()
+GOAL_HANDLE = np.array([HINGE[0] + HANDLE_IN_LEAF[0], HINGE[1] + HANDLE_IN_LEAF[1], HANDLE_Z], np.float32)
 GOAL_STATE = np.concatenate([GOAL_HANDLE, [1.0], GOAL_HANDLE]).astype(np.float32)
 
 

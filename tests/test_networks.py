@@ -58,3 +58,10 @@ def test_split_first_layers_keep_the_limit_of_the_concatenated_layer():
                             jnp.zeros((1, 16)))["params"]
     assert_glorot(rssm_params["obs_deter"]["kernel"], 64 + 96, 32)
     assert_glorot(rssm_params["obs_embed"]["kernel"], 64 + 96, 32)
+
+
+def test_the_entropy_constant_is_the_float32_one_jax_computes():
+    # a Python float since it must not start JAX at import; in float32 it is jnp's value, bit for bit
+    from morefree_jax.networks import HALF_LOG_2PI_E
+
+    assert np.float32(HALF_LOG_2PI_E) == 0.5 * jnp.log(2.0 * jnp.pi * jnp.e)

@@ -113,16 +113,21 @@ def test_a_process_started_with_allocator_env_runs_on_jemalloc_and_leaves_glibc_
 IMPORT_EVERYTHING = """
 import importlib, json, os, pkgutil, sys
 before = dict(os.environ)
-import morefree_jax, envs_mjx
-names = []
-for package in (morefree_jax, envs_mjx):
-    for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
-        importlib.import_module(info.name)
-        names.append(info.name)
+import morefree_jax, envs_mjx, experiments
+from jax._src import xla_bridge
+def import_all(package):
+    names = [info.name for info in pkgutil.walk_packages(package.__path__, package.__name__ + ".")
+             if info.name != "experiments.torch_sac_reference"]  # runs under a Python with torch only
+    for name in names:
+        importlib.import_module(name)
+    return names
+names = import_all(morefree_jax) + import_all(envs_mjx)
 from morefree_jax import runtime
 changed = {k: v for k, v in os.environ.items() if before.get(k) != v}
 removed = sorted(set(before) - set(os.environ))
-print(json.dumps({"modules": names, "changed": changed, "removed": removed, "settings": runtime.settings()}))
+names += import_all(experiments)  # the programs: they call runtime.configure() after their imports
+print(json.dumps({"modules": names, "changed": changed, "removed": removed, "settings": runtime.settings(),
+                  "backend_started": xla_bridge.backends_are_initialized()}))
 """
 
 
@@ -131,3 +136,5 @@ def test_importing_every_module_changes_no_process_state():
     assert {"morefree_jax.loop", "morefree_jax.agent", "envs_mjx.point_umaze"} <= set(done["modules"])
     assert done["changed"] == {} and done["removed"] == [], done  # XLA_FLAGS, MALLOC_*, ... untouched
     assert done["settings"]["mode"] == "unconfigured"  # no XLA flag added, no mallopt called
+    # nor a JAX computation at import: it starts XLA's backend, after which configure() can set no flag
+    assert "experiments.bench_model_free" in done["modules"] and not done["backend_started"]

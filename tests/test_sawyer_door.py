@@ -91,6 +91,8 @@ def test_reset_matches_the_reference_initial_state():
         np.asarray(door.handle_position(door.OPEN_ANGLE)), [0.01007, 0.47105, 0.10004], atol=2e-5
     )
     np.testing.assert_allclose(door.GOAL_HANDLE, [0.29072, 0.74286, 0.10004], atol=2e-5)
+    # the goal is written in numpy (no JAX at import) and is the closed door's handle bit for bit
+    np.testing.assert_array_equal(door.GOAL_HANDLE, np.asarray(door.handle_position(0.0)))
 
 
 def test_scripted_controller_closes_the_door_within_300_steps():

@@ -15,6 +15,7 @@ the math of PEG/DreamerV2 and remove redundant work:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -26,7 +27,8 @@ import optax
 
 from morefree_jax.config import OptimizerConfig
 
-HALF_LOG_2PI_E = 0.5 * jnp.log(2.0 * jnp.pi * jnp.e)
+# A Python float, not jnp: a jnp constant starts JAX's backend on import, too early for runtime.configure()
+HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)  # float32(.) equals the jnp.log value
 SQRT2 = 2.0**0.5
 ERF_INV_LIMIT = 1.0 - 2.0**-24  # the largest float32 below 1: erf_inv stays finite (~3.83)
 
