@@ -27,7 +27,7 @@ MARKS ?=
 WINDOW ?=
 PLOT_AGENTS ?=
 
-.PHONY: install test test-slow lint bench clean train evaluate experiment plots demos
+.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment plots demos
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
 CUDA ?=
@@ -49,6 +49,10 @@ lint:
 
 bench:
 	env $(ALLOC_ENV) $(PY) -m experiments.bench $(BENCH_ARGS)
+
+# The model-free speed bar's rows alone (a few minutes): TORCH_PYTHON=<a Python with torch> for the PyTorch side.
+bench-bar:
+	env $(ALLOC_ENV) $(if $(TORCH_PYTHON),TORCH_PYTHON=$(TORCH_PYTHON)) $(PY) -m experiments.bench_model_free
 
 # Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
 train:

@@ -25,10 +25,15 @@ Rows {"section", "name", "value", "unit", "note"}:
 The point_umaze oracle_sac row and the bar's rows (the update, PyTorch, the ratio) come first, measured back
 to back; the other chunk rows and the matching follow.
 quick=True: tabletop oracle_sac with 100-step chunks and the update row, no PyTorch.
+
+The bar's rows alone, with no other chunk row (a few minutes; `make bench-bar`):
+
+    TORCH_PYTHON=/tmp/torchvenv/bin/python PYTHONPATH=src:. python -m experiments.bench_model_free
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -173,19 +178,46 @@ def bar_rows(point_umaze_rate: float) -> list[dict]:
                  f"{reference['update_ms'] / at_layer_rate_ms:.1f}x")]
 
 
+def bar_section() -> list[dict]:
+    """point_umaze's oracle_sac chunk, then the update alone, PyTorch's update and the ratio, back to back."""
+    first, rate = _chunk_row("point_umaze", "oracle_sac")
+    rows = [first, *bar_rows(rate)]
+    for row in rows[1:]:
+        print(row, file=sys.stderr, flush=True)
+    return rows
+
+
 def run(quick: bool = False) -> list[dict]:
     if quick:
         rate, compile_s, _ = chunk_rate("tabletop", "oracle_sac", 100, reps=1)
         return [_row("tabletop_oracle_sac_steps_per_s", rate, "steps/s", f"compile {compile_s:.0f} s"),
                 *update_rows(updates=20)[0]]
     # The bar's rows first and back to back: this CPU's speed drifts over the section's half hour
-    first, rate = _chunk_row("point_umaze", "oracle_sac")
-    rows = [first, *bar_rows(rate)]
-    for row in rows[1:]:
-        print(row, file=sys.stderr, flush=True)
+    rows = bar_section()
     runs = [(task, "oracle_sac") for task in envs_mjx.ALL_ENVS if task != "point_umaze"]
     runs += [(task, agent) for agent in ("r3l", "medal", "ibc") for task in OTHER_AGENTS_TASKS]
     rows += [_chunk_row(task, agent)[0] for task, agent in runs]
     rows.append(matching_row())
     print(rows[-1], file=sys.stderr, flush=True)
     return rows
+
+
+def main(argv=None) -> int:
+    """The bar's rows alone (module docstring), printed as `make bench` prints a section."""
+    from experiments.bench import format_table
+    from morefree_jax import runtime
+
+    parser = argparse.ArgumentParser(description="The model-free speed bar's rows alone: the point_umaze "
+                                     "oracle_sac chunk, the SAC update, PyTorch's update ($TORCH_PYTHON) "
+                                     "and their ratio.")
+    parser.parse_args(argv)
+    runtime.configure()  # before any JAX computation, as `make bench`
+    if not os.environ.get("TORCH_PYTHON"):
+        print("bench_model_free: TORCH_PYTHON is not set, so no PyTorch row and no ratio "
+              "(see experiments/torch_sac_reference.py)", file=sys.stderr)
+    print(format_table(bar_section()), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -41,3 +41,14 @@ def test_the_section_measures_the_bar_rows_first(monkeypatch):
     names = [row["name"] for row in bench_model_free.run()]
     assert names[:2] == ["point_umaze_oracle_sac_steps_per_s", "bar"] and names[-1] == "matching"
     assert len(names) == len(set(names)) == 2 + 7 + 3 * 2 + 1  # the other 7 tasks' oracle_sac, 3 agents x 2
+
+
+def test_the_bar_alone_prints_its_rows_as_a_table(monkeypatch, capsys):
+    rows = [{"section": "model_free", "name": "fused_step_vs_torch_update", "value": 2.5, "unit": "x",
+             "note": "misses the bar >= 3"}]
+    monkeypatch.setattr(bench_model_free, "bar_section", lambda: rows)
+    monkeypatch.delenv("TORCH_PYTHON", raising=False)
+    assert bench_model_free.main([]) == 0
+    out, err = capsys.readouterr()
+    assert "fused_step_vs_torch_update" in out and "misses the bar >= 3" in out
+    assert "TORCH_PYTHON is not set" in err
