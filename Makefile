@@ -48,11 +48,11 @@ lint:
 	$(VENV)/bin/ruff check .
 
 bench:
-	env $(ALLOC_ENV) $(PY) -m experiments.bench $(BENCH_ARGS)
+	env $(ALLOC_ENV) $(PY) -m experiments.benchmarks $(BENCH_ARGS)
 
 # The model-free speed bar's rows alone (a few minutes): TORCH_PYTHON=<a Python with torch> for the PyTorch side.
 bench-bar:
-	env $(ALLOC_ENV) $(if $(TORCH_PYTHON),TORCH_PYTHON=$(TORCH_PYTHON)) $(PY) -m experiments.bench_model_free
+	env $(ALLOC_ENV) $(if $(TORCH_PYTHON),TORCH_PYTHON=$(TORCH_PYTHON)) $(PY) -m experiments.benchmarks.model_free
 
 # Re-running the same command resumes the run from its last checkpoint. Extra dotted keys: ARGS="wm.deter=64".
 train:
@@ -67,18 +67,18 @@ experiment:
 
 # Figures (PNG, SVG) and results tables of every run dir below RUNS, written to OUT.
 plots:
-	PYTHONPATH=src:. $(PY) -m experiments.plots $(RUNS) --out $(OUT) $(if $(TASK),--task $(TASK)) \
-		$(if $(MARKS),--marks $(MARKS)) $(if $(WINDOW),--window $(WINDOW)) \
-		$(if $(PLOT_AGENTS),--agents $(PLOT_AGENTS))
+	PYTHONPATH=src:. $(PY) -m experiments.plots runs=$(RUNS) out=$(OUT) $(if $(TASK),task=$(TASK)) \
+		$(if $(MARKS),marks=$(MARKS)) $(if $(WINDOW),window=$(WINDOW)) \
+		$(if $(PLOT_AGENTS),agents=$(PLOT_AGENTS))
 
 evaluate:
-	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate run_dir=$(RUN_DIR) $(ARGS)
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate_checkpoint run_dir=$(RUN_DIR) $(ARGS)
 
 # MEDAL's scripted demonstrations -> envs_mjx/demos/<task>.npz and checksums.json. Without ENV (not the
 # point_umaze default of the other targets) every task with demonstrations; ENV=push: one task.
 DEMOS_ENV = $(if $(filter command line environment,$(origin ENV)),$(ENV),all)
 demos:
-	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.demos env=$(DEMOS_ENV)
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.make_demos env=$(DEMOS_ENV)
 
 clean:
 	rm -rf bench/ .pytest_cache build *.egg-info src/*.egg-info

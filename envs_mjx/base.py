@@ -143,7 +143,7 @@ class ResetFreeEnv(Env, abc.ABC):
         """The task's defaults for a training run, {dotted config key: value} (mujoco_playground's
         `default_config()` in spirit): run.total_steps (budget), run.prefill, run.train_every (the paper's
         train ratio), run.subgoal_threshold, PEG's per-task learner values (`learner_defaults`) and the
-        planner.* settings. config_run.resolve_config layers them over the preset and under the variant
+        planner.* settings. config.resolve_config layers them over the preset and under the variant
         and the user's keys, and config.json records the resolved values."""
 
     # ---- reset-free extension ----------------------------------------------------------------

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from brax.envs.base import State
 from mujoco import mjx
@@ -190,9 +189,3 @@ class SawyerDoor(ResetFreeEnv):
         return low.astype(np.float32), high.astype(np.float32)
 
 
-def reference_mj_data(env: SawyerDoor, data: mjx.Data) -> mujoco.MjData:
-    """A C MuJoCo MjData with the full dynamic state of `data` (qpos, qvel, mocap, ctrl, act, warmstart)."""
-    mj_data = env.mj_data_from(data)
-    mj_data.ctrl[:] = np.asarray(data.ctrl)
-    mj_data.qacc_warmstart[:] = np.asarray(data.qacc_warmstart)
-    return mj_data

@@ -1,7 +1,7 @@
 """Scripted controllers, written in jnp so they run inside a `lax.scan` (and under `vmap`).
 
 They serve two users: the physics tests (tests/test_fetch.py, test_tabletop.py, test_sawyer_door.py) and
-the demonstrations MEDAL needs (morefree_jax.baselines.demo_rollouts). The task controllers share one
+the demonstrations MEDAL needs (morefree_jax.baselines.medal.demo_rollouts). The task controllers share one
 signature, `controller(obs, goal, phase) -> (action, phase)`: `goal` is a full goal observation (as
 `env.eval_goals` returns it), `phase` an int32 scalar that starts at 0 and carries what the controller
 has done so far (grasped, passed a corner, ...). `CONTROLLERS` maps (task, direction) to one.

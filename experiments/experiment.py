@@ -9,7 +9,7 @@ runs/<task>/<agent>/seed<k> and its output in runs/<task>/<agent>/train.log; `pa
 (default: one per CPU core, each pinned to its own core). Other key=value arguments go to every agent's
 train command. While they run, one progress line per agent is printed every 60 s. Re-running the same
 command resumes every agent from its checkpoints (a finished agent returns at once). When all have
-finished, `experiments.plots runs/<task> --out <out>` draws the task's figures and table; `out` defaults to
+finished, `experiments.plots runs=runs/<task> out=<out>` draws the task's figures and table; `out` defaults to
 runs/<task>/results, beside the runs and outside git, so that a later run from the same checkout is not
 stamped `+dirty` by redrawn tracked figures (`make plots OUT=results` updates the repository's).
 Ctrl-C (or `kill -INT` / `kill` of this process, also when it runs in the background) stops every agent
@@ -29,8 +29,8 @@ import time
 from typing import NamedTuple
 
 from experiments import plots
-from experiments.run_groups import read_run
-from morefree_jax.config_run import ConfigError
+from experiments.analysis.run_groups import read_run
+from morefree_jax.config import ConfigError
 from morefree_jax.seeds import parse_seeds
 
 OWN_KEYS = ("task", "agents", "seeds", "steps", "parallel", "out")
@@ -41,7 +41,7 @@ STOPPED_EXIT = 130  # the shell's code for a run ended by Ctrl-C
 def parse_args(argv: list[str]) -> tuple[dict, list[str]]:
     """({task, agents, seeds, steps, parallel, out}, the arguments passed on to every train command)."""
     import envs_mjx
-    from morefree_jax.variants import AGENTS
+    from morefree_jax.registry import AGENTS
 
     own, passed = {}, []
     for arg in argv:
@@ -74,7 +74,7 @@ def _check_train_arguments(settings: dict, passed: list[str]) -> None:
     (not an exit 2 per agent, its message in that agent's train.log)."""
     import envs_mjx
     from experiments.train import split_seeds
-    from morefree_jax.config_run import resolve_config
+    from morefree_jax.config import resolve_config
 
     for agent in settings["agents"]:
         _, arguments = split_seeds(train_arguments(settings, agent, passed))
@@ -218,8 +218,8 @@ def main(argv: list[str]) -> int:
         unstarted = f" (not started: {', '.join(outcome.unstarted)})" if outcome.unstarted else ""
         print(f"stopped{unstarted}; re-run the same command to resume; no figures drawn", file=sys.stderr)
         return STOPPED_EXIT
-    plotted = plots.main([str(pathlib.Path("runs") / settings["task"]), "--out", settings["out"],
-                          "--task", settings["task"]])
+    plotted = plots.main([f"runs={pathlib.Path('runs') / settings['task']}", f"out={settings['out']}",
+                          f"task={settings['task']}"])
     return 1 if failed else plotted
 
 

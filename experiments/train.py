@@ -21,7 +21,7 @@ import sys
 import envs_mjx
 from morefree_jax import runtime
 from morefree_jax.checkpoint import CheckpointError, ConfigMismatchError
-from morefree_jax.config_run import ConfigError, resolve_config
+from morefree_jax.config import ConfigError, resolve_config
 from morefree_jax.run_lock import RunDirError
 
 
@@ -68,17 +68,17 @@ def main(argv: list[str]) -> int:
     try:
         seeds, argv = split_seeds(argv)
         config = resolve_config(argv, envs_mjx.ALL_ENVS)
-        from morefree_jax import loop  # imports jax: after the cheap checks
+        from morefree_jax import driver  # imports jax: after the cheap checks
 
         seeds = seeds or (config.run.seed,)
-        programs = loop.build_programs(config, len(seeds))
-        fns, run_dirs = programs.fns, [c.run.resolved_run_dir for c in loop.seed_configs(config, seeds)]
+        programs = driver.build_programs(config, len(seeds))
+        fns, run_dirs = programs.fns, [c.run.resolved_run_dir for c in driver.seed_configs(config, seeds)]
         plural = "s" if len(seeds) > 1 else ""
         print(f"run dir{plural} {', '.join(run_dirs)}: {config.run.agent} on {config.run.env}, preset "
               f"{config.run.preset}, seed{plural} {','.join(map(str, seeds))}, chunk {fns.chunk_len} steps, "
               f"{fns.updates_per_chunk} updates/chunk", flush=True)
         print(_runtime_line(), flush=True)
-        summary = loop.train(config, seeds, programs)[0]
+        summary = driver.train(config, seeds, programs)[0]
     except (ConfigError, ConfigMismatchError, CheckpointError, RunDirError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -6,7 +6,7 @@ import functools
 
 import jax
 import pytest
-from loop_helpers import COMPILATION_CACHE
+from run_helpers import COMPILATION_CACHE
 
 import envs_mjx
 from morefree_jax import runtime
@@ -15,7 +15,7 @@ from morefree_jax import runtime
 runtime.configure()
 # One persistent compilation cache for the test processes (both xdist workers) and the CLI runs they start:
 # a CLI run loads the programs a test compiled in-process with the same config, and a worker loads what the
-# other compiled (loop_helpers.COMPILATION_CACHE). Programs under a second to compile are not written.
+# other compiled (run_helpers.COMPILATION_CACHE). Programs under a second to compile are not written.
 jax.config.update("jax_compilation_cache_dir", COMPILATION_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 

@@ -18,7 +18,7 @@ from morefree_jax.actor_critic import (
     make_actor_critic,
     start_without_gradient,
 )
-from morefree_jax.config import ActorCriticConfig, OptimizerConfig
+from morefree_jax.learner_config import ActorCriticConfig, OptimizerConfig
 from morefree_jax.networks import Latent
 
 N, HORIZON = 256, 10

@@ -15,8 +15,8 @@ from morefree_jax.agent import (
     acting_state,
     make_agent,
 )
-from morefree_jax.config import preset
 from morefree_jax.imagination import GoalPools
+from morefree_jax.learner_config import preset
 from tests.core_helpers import fixed_batch
 
 TRACES = {"train_step": 0, "act": 0}

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from morefree_jax import loop
+from morefree_jax import driver
 from morefree_jax.back_starts import (
     BACK_START_SLOTS,
     BACK_START_STEPS,
@@ -16,12 +16,12 @@ from morefree_jax.back_starts import (
     record_back_start,
     stored_back_starts,
 )
-from morefree_jax.config import ReplayConfig
+from morefree_jax.compile import compile_programs
+from morefree_jax.learner_config import ReplayConfig
 from morefree_jax.logger import RunLogger, read_metrics
-from morefree_jax.programs import compile_programs
+from morefree_jax.registry import make_run_fns
 from morefree_jax.replay import add, init_replay
-from morefree_jax.run_fns import make_run_fns
-from tests.loop_helpers import CHUNK, debug_config
+from tests.run_helpers import CHUNK, debug_config
 
 
 class _Task:
@@ -100,7 +100,7 @@ def test_a_debug_run_saves_the_starts_of_every_successful_back_chunk(tmp_path):
     config = debug_config("mf_task_only", f"run_dir={tmp_path}", f"steps={steps}", f"eval_every={steps}",
                           "checkpoint_every=10000")
     programs = compile_programs(make_run_fns(config, _EveryGoalReachedTabletop()), 1)
-    loop.train(config, programs=programs, progress="off")
+    driver.train(config, programs=programs, progress="off")
     saved = np.load(tmp_path / "plots" / "back_starts.npz")
     assert saved["xy"].shape == (chunks // 2, BACK_START_STEPS, 2)
     # Each back chunk starts where its forth chunk ended: stream steps prefill + CHUNK and + 3 CHUNK.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from experiments import bench_model_free
+from experiments.benchmarks import model_free as bench_model_free
 
 
 def test_update_rows_give_the_update_and_its_time_at_the_layer_rate():

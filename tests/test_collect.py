@@ -2,8 +2,8 @@
 
 Most tests drive collect_chunk with a scripted stand-in agent (known actions, a learned distance read from
 its "parameters", a planner score with a known optimum) so the numbers are exact; the last ones compile the
-real debug agent's chunk function of a run (shared with test_loop through loop_helpers). The stream is
-tabletop's (loop_helpers.RUN_ENV): its kinematic step compiles in about a second, where point_umaze's MJX
+real debug agent's chunk function of a run (shared with test_loop through run_helpers). The stream is
+tabletop's (run_helpers.RUN_ENV): its kinematic step compiles in about a second, where point_umaze's MJX
 physics costs ~20 s in each of the seven chunk programs here; the chunk logic is the same for every task.
 """
 
@@ -20,10 +20,10 @@ import pytest
 from envs_mjx.tabletop import GOAL_STATES, INITIAL_STATE
 from morefree_jax.agent import MODE_EXPLORE
 from morefree_jax.collect import CollectConfig, collect_chunk, init_stream, peg_goal_scores
-from morefree_jax.go_explore import GoalType, ScheduleConfig, init_schedule
+from morefree_jax.goal_schedule import GoalType, ScheduleConfig, init_schedule
 from morefree_jax.planner import PlannerConfig, peg_score, start_search
 from tests.conftest import cached_env
-from tests.loop_helpers import RUN_ENV, callback_primitives, debug_run, hlo_has_callback
+from tests.run_helpers import RUN_ENV, callback_primitives, debug_run, hlo_has_callback
 
 GO_ACTION = np.array([0.5, 0.0, 0.0], np.float32)  # tabletop: gripper +0.1 in x per step, no grasp
 EXPLORE_ACTION = np.array([-0.5, 0.1, 0.0], np.float32)

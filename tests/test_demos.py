@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import cached_env
 
-from morefree_jax.baselines import demos
+from morefree_jax.baselines.medal import demos
 
 COUNTS = {"tabletop": (12, 12), "sawyer_door": (5, 5), "point_umaze": (30, 0), "push": (30, 0),
           "pick_place": (30, 0), "push_hard": (30, 0), "pick_place_hard": (30, 0)}
@@ -120,7 +120,7 @@ def test_checksums_file_covers_exactly_the_stored_files():
 
 
 def test_importing_the_module_does_not_load_jax():
-    code = "import sys; import morefree_jax.baselines.demos; print('jax' in sys.modules)"
+    code = "import sys; import morefree_jax.baselines.medal.demos; print('jax' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             env={"PYTHONPATH": "src:."})
     assert result.stdout.strip() == "False"

@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from morefree_jax.config import DistanceConfig, OptimizerConfig
 from morefree_jax.distance import (
     distance,
     distance_update,
@@ -14,6 +13,7 @@ from morefree_jax.distance import (
     positive_grid,
     sample_pairs,
 )
+from morefree_jax.learner_config import DistanceConfig, OptimizerConfig
 
 H, N, E = 10, 32, 6
 

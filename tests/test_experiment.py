@@ -16,7 +16,7 @@ import time
 import pytest
 
 from experiments import experiment
-from morefree_jax.config_run import ConfigError
+from morefree_jax.config import ConfigError
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -80,7 +80,7 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
     assert "dreamer_gc exited with 2; see runs/tabletop/dreamer_gc/train.log" in err
     assert "a failing agent" in (tmp_path / "runs/tabletop/dreamer_gc/train.log").read_text()
     assert (tmp_path / "runs/tabletop/rf_peg/seed1/metrics.jsonl").exists()
-    assert plotted == [["runs/tabletop", "--out", "runs/tabletop/results", "--task", "tabletop"]]
+    assert plotted == [["runs=runs/tabletop", "out=runs/tabletop/results", "task=tabletop"]]
 
 
 def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
@@ -104,10 +104,10 @@ def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
     """The real command: r3l (the fused model-free chunk compiles in seconds) with 2 seeds at the debug
     preset, SIGKILLed with its train process once the first chunk's checkpoint is complete, then re-run."""
-    from tests.loop_helpers import cli_env, debug_args, sigkill_once_written
-    from tests.test_model_free import CHUNK, MF_ARGS, PREFILL
+    from tests.run_helpers import cli_env, debug_args, sigkill_once_written
+    from tests.test_stream import CHUNK, MF_ARGS, PREFILL
 
-    # The train arguments of test_model_free's r3l group run, so the compilation cache can serve them.
+    # The train arguments of test_stream's r3l group run, so the compilation cache can serve them.
     passed = [arg for arg in debug_args("agent=r3l", *MF_ARGS)
               if arg.split("=")[0] not in ("env", "seed", "agent")]
     command = [sys.executable, "-m", "experiments.experiment", "task=tabletop", "agents=r3l", "seeds=0,1",

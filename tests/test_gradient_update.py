@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from morefree_jax.config import OptimizerConfig
+from morefree_jax.learner_config import OptimizerConfig
 from morefree_jax.networks import gradient_update, init_net_state, make_optimizer
 
 

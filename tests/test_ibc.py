@@ -1,5 +1,5 @@
 """The ibc agent: hindsight relabelling on a hand-made replay, the curriculum's costs and matching against
-hand-computed answers, IBC's segment switching, a whole two-chunk run through loop.train (two seeds in one
+hand-computed answers, IBC's segment switching, a whole two-chunk run through driver.train (two seeds in one
 program), exact resume after SIGKILL, and bad input. The generalised SAC learner is in test_sac.py."""
 
 from __future__ import annotations
@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import pathlib
 import time
 
 import jax
@@ -17,29 +16,29 @@ import pytest
 
 import envs_mjx
 from envs_mjx.tabletop import INITIAL_STATE
-from experiments import train as train_cli
-from morefree_jax import loop
-from morefree_jax.baselines import curriculum as curriculum_lib
-from morefree_jax.baselines import her, sac
-from morefree_jax.baselines.config import IBCConfig
-from morefree_jax.baselines.curriculum import Curriculum
-from morefree_jax.baselines.ibc import BACKWARD, FORWARD, IBCLearner
-from morefree_jax.baselines.ibc_run import IBCParts
-from morefree_jax.baselines.ibc_tasks import corridor_points, ibc_task
-from morefree_jax.checkpoint import latest_valid
-from morefree_jax.config_run import resolve_config
+from morefree_jax import driver
+from morefree_jax.baselines.baseline_config import IBCConfig
+from morefree_jax.baselines.ibc import curriculum as curriculum_lib
+from morefree_jax.baselines.ibc import her
+from morefree_jax.baselines.ibc.curriculum import Curriculum
+from morefree_jax.baselines.ibc.learner import BACKWARD, FORWARD, IBCLearner
+from morefree_jax.baselines.ibc.segments import IBCParts
+from morefree_jax.baselines.ibc.tasks import corridor_points, ibc_task
+from morefree_jax.baselines.sac import learner as sac
+from morefree_jax.config import resolve_config
 from morefree_jax.logger import read_metrics
-from morefree_jax.programs import seed_slice
-from tests.loop_helpers import (
+from tests.run_helpers import (
     assert_same_run,
+    assert_train_cli_error,
     callback_primitives,
     debug_args,
+    final_state,
     sigkilled_after,
 )
 
 PREFILL, CHUNK, SEGMENT = 100, 50, 10
 SEEDS = (0, 1)
-# Tiny learners, pool and segments (tabletop's kinematic step compiles fast, loop_helpers.RUN_ENV): 200 steps
+# Tiny learners, pool and segments (tabletop's kinematic step compiles fast, run_helpers.RUN_ENV): 200 steps
 # hold ~20 segments, enough for the matchings at forward segments 2, 3, 6, ...
 IBC_ARGS = (f"prefill={PREFILL}", f"baseline.chunk_len={CHUNK}", "baseline.replay_capacity=1000",
             "baseline.ibc.sac.batch_size=32", "baseline.ibc.sac.hidden_dim=32",
@@ -55,7 +54,7 @@ def ibc_config(*extra: str):
 
 @functools.lru_cache(maxsize=1)
 def ibc_programs():
-    return loop.build_programs(ibc_config("steps=200"), len(SEEDS))
+    return driver.build_programs(ibc_config("steps=200"), len(SEEDS))
 
 
 # ---- IBC's SAC variant (sac.py's options) ---------------------------------------------------------
@@ -236,7 +235,7 @@ def test_forward_agent_samples_half_the_batch_and_backward_all_of_it(monkeypatch
         seen["forward" if success_fn == env.success else "backward"] = batch  # the task's test: forward
         return real_sample(buffer, key, batch, relabel, success_fn, goal_mask)
 
-    monkeypatch.setattr("morefree_jax.baselines.ibc.sample_her", spy)
+    monkeypatch.setattr("morefree_jax.baselines.ibc.learner.sample_her", spy)
     jax.eval_shape(learner.update, state, buffers, jnp.asarray(FORWARD), jax.random.PRNGKey(1))
     assert seen == {"forward": 32, "backward": 64}
 
@@ -388,7 +387,7 @@ def stream_directions(state) -> tuple[np.ndarray, np.ndarray]:
 
 def train(run_dir, total_steps: int):
     config = ibc_config(f"run_dir={run_dir}", f"steps={total_steps}")
-    return loop.train(config, seeds=SEEDS, programs=ibc_programs(), progress="off")
+    return driver.train(config, seeds=SEEDS, programs=ibc_programs(), progress="off")
 
 
 def test_two_chunk_run_writes_every_file_and_keeps_the_stream_rules(tmp_path):
@@ -418,19 +417,11 @@ def test_two_chunk_run_writes_every_file_and_keeps_the_stream_rules(tmp_path):
         assert str(steps) in {p.name for p in (run_dir / "checkpoints").iterdir()}
     # The stream's rules in the first seed's replay: segments end at SEGMENT steps at most, and each
     # backward segment follows a failed forward one, so there are never more backward than forward segments.
-    state = _final_state(tmp_path / "seed0")[1]
+    state = final_state(tmp_path / "seed0", ibc_programs(), SEEDS)[1]
     forward_lengths, backward_lengths = stream_directions(state)
     assert forward_lengths.max() <= SEGMENT and backward_lengths.max() <= SEGMENT
     failed_forward = int(np.sum(forward_lengths == SEGMENT))  # (or succeeded on the last step)
     assert 0 < len(backward_lengths) <= failed_forward
-
-
-def _final_state(run_dir):
-    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in SEEDS])
-    template = seed_slice(ibc_programs().init(keys), 0)
-    config_dict = json.loads((pathlib.Path(run_dir) / "config.json").read_text())
-    restored = latest_valid(run_dir, template, config_dict)
-    return restored.step, restored.state
 
 
 def test_resume_after_sigkill_is_bit_exact(tmp_path):
@@ -444,7 +435,7 @@ def test_resume_after_sigkill_is_bit_exact(tmp_path):
     train(killed_dir, three)
     for seed in SEEDS:
         a_dir, b_dir = full_dir / f"seed{seed}", killed_dir / f"seed{seed}"
-        (step_a, state_a), (step_b, state_b) = _final_state(a_dir), _final_state(b_dir)
+        (step_a, state_a), (step_b, state_b) = (final_state(d, ibc_programs(), SEEDS) for d in (a_dir, b_dir))
         assert step_a == step_b == three
         assert int(state_a.curriculum.matches) >= 2  # the matching ran, and resumed alike
         assert_same_run(a_dir, state_a, b_dir, state_b)
@@ -458,6 +449,4 @@ def test_resume_after_sigkill_is_bit_exact(tmp_path):
     (["baseline.ibc.segment_length=0"], "segment_length must be > 0, got 0"),
 ])
 def test_bad_ibc_input_exits_2_with_one_line(arguments, message, capsys):
-    assert train_cli.main(["env=tabletop", "agent=ibc", *arguments]) == 2
-    err = capsys.readouterr().err.strip()
-    assert message in err and len(err.splitlines()) == 1
+    assert_train_cli_error(capsys, ["env=tabletop", "agent=ibc", *arguments], message)

@@ -22,11 +22,11 @@ import jax.numpy as jnp
 import pytest
 
 import envs_mjx
-from morefree_jax import loop
-from morefree_jax.config_run import resolve_config
+from morefree_jax import driver
+from morefree_jax.compile import jit_run_fns
+from morefree_jax.config import resolve_config
 from morefree_jax.logger import read_metrics
-from morefree_jax.programs import jit_run_fns
-from morefree_jax.run_fns import make_run_fns
+from morefree_jax.registry import make_run_fns
 
 STEPS = 20_000
 REQUIRED_SUCCESS = 0.5
@@ -36,7 +36,7 @@ REQUIRED_SUCCESS = 0.5
 def test_morefree_solves_point_umaze_at_cpu_preset(tmp_path):
     arguments = ["env=point_umaze", "agent=morefree", "preset=cpu", "seed=0", f"steps={STEPS}",
                  "eval_every=2500", f"run_dir={tmp_path}"]
-    summary = loop.train(resolve_config(arguments, envs_mjx.ALL_ENVS), progress="off")[0]
+    summary = driver.train(resolve_config(arguments, envs_mjx.ALL_ENVS), progress="off")[0]
     assert summary.env_steps == STEPS
     curve = [(r["step"], r["eval/success"]) for r in read_metrics(tmp_path / "metrics.jsonl")
              if "eval/success" in r]

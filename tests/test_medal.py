@@ -1,11 +1,10 @@
 """MEDAL: its demonstrations in the buffers, the discriminator's reward, the stream it steers (the task goal
 kept across backward segments, goal-distribution backward goals, the policy acting in the seed phase), a
-whole run and exact resume after SIGKILL. The shared model-free machinery is tested in test_model_free.py."""
+whole run and exact resume after SIGKILL. The shared model-free machinery is tested in test_stream.py."""
 
 from __future__ import annotations
 
 import functools
-import json
 
 import jax
 import jax.numpy as jnp
@@ -14,21 +13,25 @@ import pytest
 
 import envs_mjx
 from envs_mjx.tabletop import INITIAL_STATE
-from morefree_jax import loop
-from morefree_jax.baselines import demos as demo_files
-from morefree_jax.baselines import rewards
-from morefree_jax.baselines import run_fns as mf_run_fns
-from morefree_jax.baselines.agents import BACKWARD, FORWARD
-from morefree_jax.baselines.buffer import init_buffer, sample_from
-from morefree_jax.baselines.config import ModelFreeConfig
-from morefree_jax.baselines.medal import MEDAL
-from morefree_jax.checkpoint import latest_valid
+from morefree_jax import driver
+from morefree_jax.baselines.baseline_config import ModelFreeConfig
+from morefree_jax.baselines.medal import demos as demo_files
+from morefree_jax.baselines.medal.agent import MEDAL
+from morefree_jax.baselines.sac import rewards
+from morefree_jax.baselines.sac.buffer import init_buffer, sample_from
+from morefree_jax.baselines.sac.stream import BACKWARD, FORWARD, StreamParts
+from morefree_jax.compile import seed_slice
 from morefree_jax.logger import read_metrics
-from morefree_jax.programs import seed_slice
-from tests.loop_helpers import assert_same_run, debug_args, sigkilled_after
-from tests.test_model_free import CHUNK, MF_ARGS, PREFILL, SWITCH, mf_config
+from tests.run_helpers import (
+    assert_same_run,
+    assert_train_cli_error,
+    debug_args,
+    final_state,
+    sigkilled_after,
+)
+from tests.test_stream import CHUNK, MF_ARGS, PREFILL, SWITCH, mf_config
 
-ENV = "tabletop"  # loop_helpers.RUN_ENV: the fast-compiling kinematic step
+ENV = "tabletop"  # run_helpers.RUN_ENV: the fast-compiling kinematic step
 
 
 @functools.cache
@@ -98,7 +101,7 @@ def test_visitation_counts_the_stream_not_the_demonstrations():
     for buffer, demos in zip(medal.fill_buffers(empty, jax.random.PRNGKey(0)), medal.demo_rows, strict=True):
         obs = buffer.obs.at[:demos].set(INITIAL_STATE).at[demos:demos + 10].set(far)
         buffers.append(buffer.replace(obs=obs, count=jnp.asarray(demos + 10)))
-    parts = mf_run_fns._Parts(config, env(), medal)
+    parts = StreamParts(config, env(), medal)
     views = parts.visitation(tuple(buffers))
     assert float(views["task_relevant"]) == 0.0 and float(jnp.sum(views["xy"])) == 20.0  # 10 stream rows each
     # The ring wraps onto slot 0: it counts (its row is still task-relevant here), slots 1-39 do not yet.
@@ -132,7 +135,7 @@ def test_discriminator_reward_rises_on_demonstration_states():
 
 @functools.lru_cache(maxsize=1)
 def medal_programs():
-    return loop.build_programs(mf_config("medal", "steps=200"), 1)
+    return driver.build_programs(mf_config("medal", "steps=200"), 1)
 
 
 def test_seed_phase_acts_with_the_policy_and_steers_medal_goals():
@@ -162,17 +165,11 @@ def test_seed_phase_acts_with_the_policy_and_steers_medal_goals():
     assert not np.allclose(backward_goals[0], initial_state)  # a goal-distribution draw, unlike r3l's
 
 
-def _final_state(run_dir):
-    template = seed_slice(medal_programs().init(jax.random.PRNGKey(0)[None]), 0)
-    restored = latest_valid(run_dir, template, json.loads((run_dir / "config.json").read_text()))
-    return restored.step, restored.state
-
-
 def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_path):
     full_dir, killed_dir = tmp_path / "full", tmp_path / "killed"
     three = PREFILL + 3 * CHUNK
     config = lambda d, n: mf_config("medal", f"run_dir={d}", f"steps={n}")  # noqa: E731
-    loop.train(config(full_dir, three), programs=medal_programs(), progress="off")
+    driver.train(config(full_dir, three), programs=medal_programs(), progress="off")
     records = read_metrics(full_dir / "metrics.jsonl")
     last = [r for r in records if "train/updates" in r][-1]
     assert last["train/updates"] == 3 * CHUNK
@@ -184,8 +181,8 @@ def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_p
     done = sigkilled_after([*debug_args("agent=medal", *MF_ARGS), f"steps={PREFILL + 40 * CHUNK}",
                             f"run_dir={killed_dir}"], killed_dir / "checkpoints", PREFILL + CHUNK)
     assert done < three, f"killed too late: step {done}"
-    loop.train(config(killed_dir, three), programs=medal_programs(), progress="off")
-    (step_a, state_a), (step_b, state_b) = _final_state(full_dir), _final_state(killed_dir)
+    driver.train(config(killed_dir, three), programs=medal_programs(), progress="off")
+    (step_a, state_a), (step_b, state_b) = (final_state(d, medal_programs()) for d in (full_dir, killed_dir))
     assert step_a == step_b == three
     assert_same_run(full_dir, state_a, killed_dir, state_b)
 
@@ -200,8 +197,5 @@ def test_medal_run_writes_every_file_and_resumes_after_sigkill_bit_exactly(tmp_p
      "baseline.discriminator.mixup expects bool, got 'maybe'"),
 ])
 def test_bad_medal_input_is_one_line(arguments, message, capsys):
-    from experiments import train as train_cli
 
-    assert train_cli.main(["agent=medal", "preset=debug", *arguments]) == 2
-    err = capsys.readouterr().err.strip()
-    assert message in err and len(err.splitlines()) == 1, err
+    assert_train_cli_error(capsys, ["agent=medal", "preset=debug", *arguments], message)

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from morefree_jax.actor_critic import init_actor_critic, make_actor_critic
-from morefree_jax.config import ActorCriticConfig, DistanceConfig
 from morefree_jax.distance import init_distance, make_distance
+from morefree_jax.learner_config import ActorCriticConfig, DistanceConfig
 from morefree_jax.networks import MLP, RSSM, Latent, elu, glorot_uniform
 
 

@@ -9,9 +9,8 @@ from conftest import cached_env
 
 import envs_mjx
 from envs_mjx.normalise import NormalisedObservations, in_task_units
-from morefree_jax.checkpoint import config_differences
-from morefree_jax.config_run import config_to_dict, resolve_config
-from morefree_jax.run_fns import make_run_fns
+from morefree_jax.config import resolve_config
+from morefree_jax.registry import make_run_fns
 
 
 def wrapped_tabletop():
@@ -74,12 +73,3 @@ def test_the_fetch_tasks_world_model_agents_see_normalised_observations(task, ag
     config = resolve_config([f"env={task}", f"agent={agent}", "preset=debug"], envs_mjx.ALL_ENVS)
     fns = make_run_fns(config, cached_env(task))
     assert isinstance(fns.env, NormalisedObservations) == wrapped
-
-
-def test_a_run_dir_from_before_the_key_resumes_with_raw_observations():
-    config = config_to_dict(resolve_config(["env=point_umaze", "agent=morefree"], envs_mjx.ALL_ENVS))
-    stored = {**config, "agent": {k: v for k, v in config["agent"].items() if k != "normalise_observations"}}
-    assert config_differences(stored, config) == []
-    fetch = config_to_dict(resolve_config(["env=push", "agent=morefree"], envs_mjx.ALL_ENVS))
-    stored = {**fetch, "agent": {k: v for k, v in fetch["agent"].items() if k != "normalise_observations"}}
-    assert config_differences(stored, fetch) == ["agent.normalise_observations"]

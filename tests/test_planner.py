@@ -13,7 +13,7 @@ from conftest import cached_env
 
 import envs_mjx
 from morefree_jax import planner
-from morefree_jax.config_run import resolve_config
+from morefree_jax.config import resolve_config
 
 LOW = jnp.array([-2.0, -2.0, -1.0])
 HIGH = jnp.array([10.0, 10.0, 1.0])

@@ -11,7 +11,8 @@ import shutil
 import numpy as np
 import pytest
 
-from experiments import plots, run_groups
+from experiments import plots
+from experiments.analysis import figures, run_groups
 
 SUCCESS = {("morefree", 0): [0.0, 0.5, 1.0], ("morefree", 1): [0.0, 0.3, 0.8],
            ("morefree", 2): [0.2, 0.4, 0.6], ("rf_peg", 0): [0.0, 0.1, 0.2], ("rf_peg", 1): [0.0, 0.3, 0.4]}
@@ -64,7 +65,7 @@ def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     (runs / "broken").mkdir()
     (runs / "broken" / "config.json").write_text("{}")
     out = tmp_path / "results"
-    assert plots.main([str(runs), "--out", str(out), "--task", "point_umaze", "--marks", "5000,7500"]) == 0
+    assert plots.main([f"runs={runs}", f"out={out}", "task=point_umaze", "marks=5000,7500"]) == 0
     printed = capsys.readouterr().out
     assert "skipped" in printed and "broken: no metrics.jsonl" in printed
     assert "holds task tabletop, not point_umaze" in printed
@@ -92,7 +93,7 @@ def test_ablation_normalises_each_variants_final_success_by_morefrees_on_the_sam
     write_run(runs / "ant" / "mf_no_bfge" / "seed0", "ant", "mf_no_bfge", 0, [0.0, 0.2, 0.2])
     write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0.0, 0.0, 0.5])  # alone
     out = tmp_path / "results"
-    assert plots.main([str(runs), "--out", str(out)]) == 0
+    assert plots.main([f"runs={runs}", f"out={out}"]) == 0
     with open(out / "ablation.csv") as file:
         rows = {(r["task"], r["agent"]): r for r in csv.DictReader(file)}
     assert sorted(rows) == [("ant", "mf_no_bfge"), ("ant", "morefree"), ("point_umaze", "morefree"),
@@ -133,7 +134,7 @@ def test_back_starts_title_says_up_to_which_steps_the_seeds_saved(runs):
     with np.load(seed1) as data:
         np.savez(seed1, xy=data["xy"], stream_step=data["stream_step"], step=np.int64(5000))
     groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
-    fig = plots.back_starts_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
+    fig = figures.back_starts_figure("point_umaze", groups, figures.TaskGeometry("point_umaze"))
     title = fig.axes[0].get_title()
     assert "morefree: 9 successful back chunks" in title and "3 seeds, up to step 5,000-7,500" in title
 
@@ -146,8 +147,8 @@ def test_the_stamp_fits_under_a_one_panel_figure(runs, commits):
 
     stamp = "runs: " + " ".join(f"{i:07x}+dirty" for i in range(commits)) + " · drawn: 0123456"
     groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
-    fig = plots.back_starts_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
-    text = plots.add_stamp(fig, stamp)
+    fig = figures.back_starts_figure("point_umaze", groups, figures.TaskGeometry("point_umaze"))
+    text = figures.add_stamp(fig, stamp)
     FigureCanvasAgg(fig).draw()
     box, panel = text.get_window_extent(), fig.axes[0].get_tightbbox()
     assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y0 >= 0
@@ -158,7 +159,7 @@ def test_the_stamp_fits_under_a_one_panel_figure(runs, commits):
 
 def test_no_run_found_is_one_line(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
-    assert plots.main([str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
+    assert plots.main([f"runs={tmp_path / 'empty'}", f"out={tmp_path / 'out'}"]) == 2
     error = capsys.readouterr().err
     assert error.startswith("error: no run with evaluations found below") and error.count("\n") == 1
 
@@ -167,13 +168,13 @@ def test_rest_density_counts_nearby_points():
     trajectory = np.zeros((100, 2))
     trajectory[50:] = [5.0, 5.0]
     trajectory[99] = [np.nan, np.nan]
-    density = plots.rest_density(trajectory, radius=1.0)
+    density = figures.rest_density(trajectory, radius=1.0)
     assert density[0] == pytest.approx(0.5) and density[60] == pytest.approx(0.49) and density[99] == 0.0
 
 
 def test_window_table_averages_each_seed_over_its_evaluations_first(runs, tmp_path):
     out = tmp_path / "results"
-    assert plots.main([str(runs), "--out", str(out), "--window", "5000:7500"]) == 0
+    assert plots.main([f"runs={runs}", f"out={out}", "window=5000:7500"]) == 0
     with open(out / "point_umaze_window.csv") as file:
         rows = {r["agent"]: r for r in csv.DictReader(file)}
     per_seed = [np.mean(SUCCESS["morefree", seed][1:]) for seed in range(3)]  # 0.75, 0.55, 0.5
@@ -185,16 +186,14 @@ def test_window_table_averages_each_seed_over_its_evaluations_first(runs, tmp_pa
     table = (out / "point_umaze_window.md").read_text()
     assert "| point_umaze | morefree | 3 | 5,000-7,500 | 2 | 0.60 ± 0.08 |" in table
     # A window past the runs' last evaluation has no rows.
-    assert plots.main([str(runs), "--out", str(out), "--window", "5000:10000"]) == 0
+    assert plots.main([f"runs={runs}", f"out={out}", "window=5000:10000"]) == 0
     assert (out / "point_umaze_window.csv").read_text().count("\n") == 1
 
 
 @pytest.mark.parametrize("window", ["5000", "a:b", "7500:5000"])
 def test_bad_window_is_one_line(runs, tmp_path, window, capsys):
-    with pytest.raises(SystemExit) as exited:
-        plots.main([str(runs), "--out", str(tmp_path / "out"), "--window", window])
-    assert exited.value.code == 2
-    assert "--window" in capsys.readouterr().err.splitlines()[-1]
+    assert plots.main([f"runs={runs}", f"out={tmp_path / 'out'}", f"window={window}"]) == 2
+    assert "window" in capsys.readouterr().err.splitlines()[-1]
 
 
 def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
@@ -207,14 +206,14 @@ def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
         for step in saved:
             np.save(run_dir / "plots" / f"visitation_{step:09d}.npy", np.zeros((50, 50)))
     groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
-    geometry = plots.TaskGeometry("point_umaze")
-    fig, steps = plots.visitation_figure("point_umaze", groups, geometry)
+    geometry = figures.TaskGeometry("point_umaze")
+    fig, steps = figures.visitation_figure("point_umaze", groups, geometry)
     assert steps == {"ibc": 2800, "morefree": 7500, "rf_peg": 7500}  # ibc: the latest both seeds saved
     assert [ax.get_title().splitlines()[1] for ax in fig.axes] == [
         "(2 seeds, step 2,800)", "(3 seeds, step 7,500)", "(2 seeds, step 7,500)"]
-    _, capped = plots.visitation_figure("point_umaze", groups, geometry, cap=5000)
+    _, capped = figures.visitation_figure("point_umaze", groups, geometry, cap=5000)
     assert capped == {"ibc": 2800, "morefree": 5000, "rf_peg": 5000}
-    assert plots.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
+    assert figures.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
 
 
 @pytest.mark.parametrize("extra_agents", [(), ("r3l", "medal", "ibc")])
@@ -224,7 +223,7 @@ def test_heatmap_titles_and_labels_stay_inside_the_figure(runs, extra_agents):
     for agent in extra_agents:
         write_run(runs / "point_umaze" / agent / "seed0", "point_umaze", agent, 0, [0.0, 0.0, 0.0])
     groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
-    fig, steps = plots.visitation_figure("point_umaze", groups, plots.TaskGeometry("point_umaze"))
+    fig, steps = figures.visitation_figure("point_umaze", groups, figures.TaskGeometry("point_umaze"))
     assert len(steps) == 2 + len(extra_agents)
     FigureCanvasAgg(fig).draw()
     width, height = fig.get_size_inches() * fig.dpi
@@ -235,12 +234,12 @@ def test_heatmap_titles_and_labels_stay_inside_the_figure(runs, extra_agents):
 
 def test_agents_option_draws_only_those_agents(runs, tmp_path, capsys):
     out = tmp_path / "results"
-    assert plots.main([str(runs), "--out", str(out), "--agents", "rf_peg", "--marks", "7500"]) == 0
+    assert plots.main([f"runs={runs}", f"out={out}", "agents=rf_peg", "marks=7500"]) == 0
     with open(out / "point_umaze_results.csv") as file:
         assert [row["agent"] for row in csv.DictReader(file)] == ["rf_peg"]
     assert not (out / "ablation.csv").exists()  # no morefree among the chosen agents
     capsys.readouterr()
-    assert plots.main([str(runs), "--out", str(out), "--agents", "r3l,ibc"]) == 2
+    assert plots.main([f"runs={runs}", f"out={out}", "agents=r3l,ibc"]) == 2
     error = capsys.readouterr().err
     assert error == f"error: no run of r3l, ibc found below {runs} (agents there: morefree, rf_peg)\n"
 
@@ -257,13 +256,13 @@ def test_pick_place_hard_gets_the_side_view_with_its_in_air_share(tmp_path):
         np.save(run_dir / "plots" / f"side_visitation_{STEPS[-1]:09d}.npy", np.ones((50, 50)))
     write_run(root / "point_umaze" / "morefree" / "seed0", "point_umaze", "morefree", 0, [0.0, 0.0, 0.0])
     out = tmp_path / "results"
-    assert plots.main([str(root), "--out", str(out)]) == 0
+    assert plots.main([f"runs={root}", f"out={out}"]) == 0
     names = {path.name for path in out.iterdir()}
     assert {"pick_place_hard_side_visitation.png", "pick_place_hard_visitation.png"} <= names
     assert "point_umaze_side_visitation.png" not in names
     groups = run_groups.group_runs(run_groups.find_runs(root, "pick_place_hard")[0])
-    geometry = plots.TaskGeometry("pick_place_hard")
-    fig, steps = plots.visitation_figure("pick_place_hard", groups, geometry, view=plots.SIDE_VIEW)
+    geometry = figures.TaskGeometry("pick_place_hard")
+    fig, steps = figures.visitation_figure("pick_place_hard", groups, geometry, view=figures.SIDE_VIEW)
     assert steps == {"morefree": STEPS[-1]}
     assert fig.axes[0].get_title().splitlines()[0] == "morefree: in the air 37.5%"
     # the side view's box is the block's x and height, with the air line inside it

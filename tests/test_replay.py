@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from morefree_jax.config import ReplayConfig
-from morefree_jax.replay import add, init_replay, num_valid, sample, valid_starts
+from morefree_jax.learner_config import ReplayConfig
+from morefree_jax.replay import add, init_replay, sample, valid_starts
 
 LENGTH = 4
 
@@ -48,7 +48,7 @@ def test_windows_never_cross_a_hard_reset_and_are_consecutive():
     # Valid starts: 0..36 minus those whose next 3 steps hit 13, 14 or 30.
     expected = [s for s in range(37) if not {s + 1, s + 2, s + 3} & set(resets)]
     assert sorted(set(pos[:, 0])) == expected
-    assert int(num_valid(state, LENGTH)) == len(expected)
+    assert int(jnp.sum(valid_starts(state, LENGTH))) == len(expected)
 
 
 def test_wrap_around_keeps_the_latest_capacity_transitions():

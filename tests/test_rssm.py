@@ -6,12 +6,8 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
-import envs_mjx
-from morefree_jax.checkpoint import ConfigMismatchError, config_differences, refuse_config_change
-from morefree_jax.config import preset
-from morefree_jax.config_run import config_to_dict, resolve_config
+from morefree_jax.learner_config import preset
 from morefree_jax.networks import RSSM, Gaussian, Latent, gaussian_kl
 from morefree_jax.world_model import init_world_model, kl_balance_loss, make_world_model, observe
 
@@ -88,24 +84,9 @@ def test_img_step_matches_obs_step_deter():
     np.testing.assert_allclose(np.asarray(prior.std), np.asarray(prior2.std), atol=1e-6)
 
 
-def test_the_gru_input_layer_has_dreamers_bias_and_old_run_dirs_keep_theirs():
+def test_the_gru_input_layer_has_dreamers_bias_unless_turned_off():
     _, params = model()
     assert params["rssm"]["params"]["gru"]["Dense_0"]["bias"].shape == (3 * preset("debug").wm.deter,)
     no_bias = make_world_model(dataclasses.replace(preset("debug").wm, gru_bias=False), OBS)
     no_bias_params = init_world_model(no_bias, jax.random.PRNGKey(0), OBS, ACT)["rssm"]["params"]
     assert "bias" not in no_bias_params["gru"]["Dense_0"]
-    # a run dir made before the key had no bias: it resumes with wm.gru_bias=false, and is refused without
-    current = config_to_dict(resolve_config(["env=point_umaze", "agent=morefree"], envs_mjx.ALL_ENVS))
-    stored = {**current, "agent": {**current["agent"], "wm": {
-        k: v for k, v in current["agent"]["wm"].items() if k != "gru_bias"}}}
-    assert config_differences(stored, current) == ["agent.wm.gru_bias"]
-    with pytest.raises(ConfigMismatchError, match="agent.wm.gru_bias: False -> True"):  # names the held value
-        refuse_config_change(stored, current, "run dir")
-    old = config_to_dict(resolve_config(["env=point_umaze", "agent=morefree", "wm.gru_bias=false"],
-                                        envs_mjx.ALL_ENVS))
-    assert config_differences(stored, old) == []
-    # a model-free run reads no world-model key: its run dirs from before resume without it
-    sac = config_to_dict(resolve_config(["env=point_umaze", "agent=oracle_sac"], envs_mjx.ALL_ENVS))
-    stored = {**sac, "agent": {**sac["agent"], "wm": {k: v for k, v in sac["agent"]["wm"].items()
-                                                      if k != "gru_bias"}}}
-    assert config_differences(stored, sac) == []

@@ -117,7 +117,7 @@ import morefree_jax, envs_mjx, experiments
 from jax._src import xla_bridge
 def import_all(package):
     names = [info.name for info in pkgutil.walk_packages(package.__path__, package.__name__ + ".")
-             if info.name != "experiments.torch_sac_reference"]  # runs under a Python with torch only
+             if info.name != "experiments.benchmarks.torch_sac_reference"]  # runs under torch's Python only
     for name in names:
         importlib.import_module(name)
     return names
@@ -133,8 +133,8 @@ print(json.dumps({"modules": names, "changed": changed, "removed": removed, "set
 
 def test_importing_every_module_changes_no_process_state():
     done = _last_json(_python(IMPORT_EVERYTHING, "large", {"XLA_FLAGS": "--xla_cpu_use_thunk_runtime=true"}))
-    assert {"morefree_jax.loop", "morefree_jax.agent", "envs_mjx.point_umaze"} <= set(done["modules"])
+    assert {"morefree_jax.driver", "morefree_jax.agent", "envs_mjx.point_umaze"} <= set(done["modules"])
     assert done["changed"] == {} and done["removed"] == [], done  # XLA_FLAGS, MALLOC_*, ... untouched
     assert done["settings"]["mode"] == "unconfigured"  # no XLA flag added, no mallopt called
     # nor a JAX computation at import: it starts XLA's backend, after which configure() can set no flag
-    assert "experiments.bench_model_free" in done["modules"] and not done["backend_started"]
+    assert "experiments.benchmarks.model_free" in done["modules"] and not done["backend_started"]

@@ -1,4 +1,4 @@
-"""The SAC learner of the model-free baselines (baselines/sac.py) against hand-computed quantities."""
+"""The SAC learner of the model-free baselines (baselines/sac/learner.py) against hand-computed quantities."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from morefree_jax.baselines import sac
+from morefree_jax.baselines.sac import learner as sac
 
 CONFIG = sac.SACConfig(feature_dim=8, hidden_dim=16, batch_size=4)
 OBS, ACT = 5, 2

@@ -130,7 +130,7 @@ def test_gripper_cannot_leave_its_workspace():
 
 def c_mujoco_rollout(env_, data, actions):
     """Steps C MuJoCo from the MJX `data` with the same mocap rule and controls. Returns qpos (T, nq)."""
-    mj_data = door.reference_mj_data(env_, data)
+    mj_data = reference_mj_data(env_, data)
     qpos = []
     for action in actions:
         mocap = mj_data.mocap_pos + door.MOCAP_STEP * action[0:3]
@@ -162,3 +162,11 @@ def test_mjx_matches_c_mujoco():
         reference = c_mujoco_rollout(env_, data, actions[start : start + 20])
         error = np.abs(reference - datas.qpos[start + 1 : start + 21]).max(0)
         assert np.all(error < tolerance), (start, error)
+
+
+def reference_mj_data(env, data):
+    """A C MuJoCo MjData with the full dynamic state of `data` (qpos, qvel, mocap, ctrl, act, warmstart)."""
+    mj_data = env.mj_data_from(data)
+    mj_data.ctrl[:] = np.asarray(data.ctrl)
+    mj_data.qacc_warmstart[:] = np.asarray(data.qacc_warmstart)
+    return mj_data

@@ -1,4 +1,4 @@
-"""Several seeds in one program (debug preset, tabletop: see loop_helpers.RUN_ENV): per-seed run dirs,
+"""Several seeds in one program (debug preset, tabletop: see run_helpers.RUN_ENV): per-seed run dirs,
 equality with single-seed runs, exact resume of a group after SIGKILL, vmap with one trace, sharding over
 2 forced CPU devices, bad seed lists.
 
@@ -23,16 +23,17 @@ import numpy as np
 import pytest
 
 from experiments import train as train_cli
-from morefree_jax import loop
+from morefree_jax import driver
 from morefree_jax.checkpoint import RunCheckpointer, latest_valid
-from morefree_jax.config_run import ConfigError
+from morefree_jax.compile import compile_programs, seed_slice
+from morefree_jax.config import ConfigError
+from morefree_jax.driver import restore_group
 from morefree_jax.logger import read_metrics
-from morefree_jax.loop import restore_group
-from morefree_jax.programs import compile_programs, seed_slice
 from morefree_jax.seeds import parse_seeds
-from tests.loop_helpers import (
+from tests.run_helpers import (
     CHUNK,
     assert_same_run,
+    assert_train_cli_error,
     cli_env,
     debug_args,
     debug_config,
@@ -43,7 +44,7 @@ from tests.loop_helpers import (
 )
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-PREFILL = 20  # loop_helpers.DEBUG_ARGS
+PREFILL = 20  # run_helpers.DEBUG_ARGS
 THREE_CHUNKS = PREFILL + 3 * CHUNK
 SEEDS = (0, 1)
 
@@ -92,7 +93,7 @@ def test_each_seed_writes_its_own_run_dir(two_seed_run):
 def test_seed_one_of_a_group_equals_the_single_seed_run(two_seed_run, tmp_path):
     config = debug_config("morefree", "seed=1", f"steps={THREE_CHUNKS}", f"checkpoint_every={2 * CHUNK}",
                           f"run_dir={tmp_path}")
-    loop.train(config, programs=debug_programs("morefree"), progress="off")
+    driver.train(config, programs=debug_programs("morefree"), progress="off")
     step_group, state_group = _checkpoint(two_seed_run / "seed1", _template())
     step_single, state_single = _checkpoint(tmp_path, _template())
     assert step_group == step_single == THREE_CHUNKS
@@ -161,8 +162,8 @@ import sys
 import jax, jax.numpy as jnp, numpy as np
 from morefree_jax import runtime
 runtime.configure()
-from morefree_jax.programs import compile_programs, seed_sharding
-from tests.loop_helpers import debug_programs
+from morefree_jax.compile import compile_programs, seed_sharding
+from tests.run_helpers import debug_programs
 assert len(jax.devices()) == 2, jax.devices()
 sharding = seed_sharding(2)
 programs = compile_programs(debug_programs("morefree").fns, 2, sharding)
@@ -197,7 +198,5 @@ def test_two_seeds_sharded_over_two_cpu_devices_match_one_device(tmp_path):
 def test_bad_seed_lists_get_one_line_errors(text, message, capsys):
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         parse_seeds(text)
-    assert train_cli.main(["env=point_umaze", f"seeds={text}"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert message in err and len(err.splitlines()) == 1
+    assert_train_cli_error(capsys, ["env=point_umaze", f"seeds={text}"], message)
     assert train_cli.main(["env=point_umaze", "seed=1", "seeds=0,1"]) == 2

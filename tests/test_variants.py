@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from morefree_jax.config_run import Config, ConfigError, config_from_dict, config_to_dict, resolve_config
+from morefree_jax.config import Config, ConfigError, config_from_dict, config_to_dict, resolve_config
 from morefree_jax.imagination import SOURCE_EVAL, GoalPools, sample_imagination_goals
 from morefree_jax.variants import VARIANTS, variant
 

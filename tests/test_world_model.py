@@ -5,7 +5,7 @@ import functools
 import jax
 import numpy as np
 
-from morefree_jax.config import preset
+from morefree_jax.learner_config import preset
 from morefree_jax.networks import init_net_state, make_optimizer
 from morefree_jax.world_model import init_world_model, make_world_model, world_model_update
 from tests.core_helpers import fixed_batch

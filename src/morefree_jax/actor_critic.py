@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from morefree_jax.config import ActorCriticConfig
 from morefree_jax.imagination import Trajectory, imagine
+from morefree_jax.learner_config import ActorCriticConfig
 from morefree_jax.networks import (
     RSSM,
     ContextMLP,

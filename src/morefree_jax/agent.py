@@ -28,7 +28,7 @@ import flax
 import jax
 import jax.numpy as jnp
 
-from morefree_jax import agent_train
+from morefree_jax import agent_update
 from morefree_jax.actor_critic import (
     imagine_with,
     init_actor_critic,
@@ -37,12 +37,11 @@ from morefree_jax.actor_critic import (
     project,
     returns_of,
 )
-from morefree_jax.config import AgentConfig
 from morefree_jax.distance import distance, init_distance, make_distance
-from morefree_jax.explore import disagreement, init_ensemble, make_ensemble
 from morefree_jax.imagination import (
     Trajectory,
 )
+from morefree_jax.learner_config import AgentConfig
 from morefree_jax.networks import (
     ERF_INV_LIMIT,
     SQRT2,
@@ -54,6 +53,7 @@ from morefree_jax.networks import (
     make_optimizer,
     zero_latent,
 )
+from morefree_jax.plan2explore import disagreement, init_ensemble, make_ensemble
 from morefree_jax.world_model import encode, init_world_model, make_world_model
 
 MODE_GOAL, MODE_EXPLORE = 0, 1  # policy choice (bit 0)
@@ -163,10 +163,10 @@ def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
                      explore_ac=make_actor_critic(config.explore.ac, spec.action_size, use_context=False),
                      dist=make_distance(config.distance), ens=make_ensemble(config.explore, config.wm.stoch),
                      config=config, spec=spec)
-    parts = AgentParts(partial(agent_train.world_model_part, m),
-                       partial(agent_train.goal_conditioned_part, m), partial(agent_train.explore_part, m))
+    parts = AgentParts(partial(agent_update.world_model_part, m),
+                       partial(agent_update.goal_conditioned_part, m), partial(agent_update.explore_part, m))
     return Agent(partial(init, m), partial(initial_latent, m), partial(goal_context, m), partial(act, m),
-                 partial(agent_train.train_step, m), partial(goal_distance, m), partial(imagine_to_goals, m),
+                 partial(agent_update.train_step, m), partial(goal_distance, m), partial(imagine_to_goals, m),
                  partial(exploration_value, m), config, spec, m, parts)
 
 

@@ -80,56 +80,11 @@ def _as_json(tree: dict) -> dict:
     return json.loads(json.dumps(tree))
 
 
-# Config sections (dotted) added after run dirs existed. A stored config without one of them was written by
-# a run of an agent that does not read it (the `baseline` keys belong to the model-free agents, which always
-# wrote them; `baseline.ibc` only the ibc agent reads, `baseline.discriminator` only medal), so such a run
-# dir resumes.
-LATER_SECTIONS = ("baseline", "baseline.ibc", "baseline.discriminator")
-
-
-def later_keys() -> dict:
-    """Keys added to an existing section after run dirs existed, with the value a run that predates them
-    used: the SAC options added for IBC, whose defaults are MEDAL's (the learner those runs trained), the
-    observation normalisation (runs before it saw raw observations), the GRU bias (they had none) and the
-    run's codegen (XLA's default, "optimized")."""
-    from morefree_jax.baselines.config import SAC_OPTIONS_ADDED_FOR_IBC, SACConfig
-
-    sac_options = {f"baseline.sac.{name}": getattr(SACConfig(), name) for name in SAC_OPTIONS_ADDED_FOR_IBC}
-    return {**sac_options, "agent.normalise_observations": False, "agent.wm.gru_bias": False,
-            "run.codegen": "optimized"}
-
-
-def _has_section(tree: dict, dotted: str) -> bool:
-    for part in dotted.split("."):
-        if not isinstance(tree, dict) or part not in tree:
-            return False
-        tree = tree[part]
-    return True
-
-
-def _with_held_defaults(stored: dict, current_flat: dict) -> dict:
-    """The stored config, flat, with the value a later_keys() key held where it predates the key. A
-    model-free run reads no `agent.` key (the world-model agents' section): such a key holds the current
-    value there."""
-    from morefree_jax.baselines.config import MODEL_FREE_AGENTS
-
-    held_defaults = {key: value for key, value in _flatten_dict(_as_json(later_keys())).items()
-                     if key in current_flat}
-    if stored.get("run", {}).get("agent") in MODEL_FREE_AGENTS:
-        held_defaults.update({key: current_flat[key] for key in held_defaults if key.startswith("agent.")})
-    return {**held_defaults, **_flatten_dict(_as_json(stored))}
-
-
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
-    """Dotted keys whose values differ between two nested config dicts (missing on one side counts, except
-    a LATER_SECTIONS section the stored config lacks and a later_keys() key it lacks, which held its
-    default, where the current config has it). Both are compared in their JSON form (tuples and lists are
-    equal)."""
+    """Dotted keys whose values differ between two nested config dicts (missing on one side counts). Both
+    are compared in their JSON form (tuples and lists are equal)."""
     current_flat = _flatten_dict(_as_json(current))
-    stored_flat = _with_held_defaults(stored, current_flat)
-    later = tuple(f"{section}." for section in LATER_SECTIONS if not _has_section(stored, section))
-    stored_flat = {key: value for key, value in stored_flat.items() if not key.startswith(later)}
-    current_flat = {key: value for key, value in current_flat.items() if not key.startswith(later)}
+    stored_flat = _flatten_dict(_as_json(stored))
     keys = sorted(set(stored_flat) | set(current_flat))
     absent = "<absent>"
     return [k for k in keys if k not in ignore and stored_flat.get(k, absent) != current_flat.get(k, absent)]
@@ -139,8 +94,7 @@ def refuse_config_change(stored: dict, current: dict, where: str, ignore: tuple[
     """Raises ConfigMismatchError naming the differing keys (with both values) if the configs differ."""
     differing = config_differences(stored, current, ignore)
     if differing:
-        current_flat = _flatten_dict(_as_json(current))
-        stored_flat = _with_held_defaults(stored, current_flat)
+        current_flat, stored_flat = _flatten_dict(_as_json(current)), _flatten_dict(_as_json(stored))
         absent = "<absent>"
         shown = ", ".join(
             f"{k}: {stored_flat.get(k, absent)!r} -> {current_flat.get(k, absent)!r}" for k in differing[:8]

@@ -4,7 +4,7 @@
         env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner, key)
 
 At the start of a chunk a hard reset that is due on the chunk's first step is applied first (so the goal
-is chosen from the state the chunk really starts in), then the goal schedule (go_explore.py) picks the
+is chosen from the state the chunk really starts in), then the goal schedule (goal_schedule.py) picks the
 chunk's goal: an evaluation goal, an initial state, or a planner goal (PEG's search from the current
 latent, run afresh on every planner chunk). Then every step, inside the same scan and with no host round
 trip: the agent filters the observation into its latent and acts (goal-conditioned policy in the go phase,
@@ -38,8 +38,8 @@ from flax import struct
 
 from morefree_jax.agent import MODE_EXPLORE, MODE_GOAL
 from morefree_jax.batching import lazy_cond
-from morefree_jax.go_explore import GoalChoice, GoalType, ScheduleConfig, commit_goal, next_chunk_goal
-from morefree_jax.go_explore import schedule_metrics as _schedule_metrics
+from morefree_jax.goal_schedule import GoalChoice, GoalType, ScheduleConfig, commit_goal, next_chunk_goal
+from morefree_jax.goal_schedule import schedule_metrics as _schedule_metrics
 from morefree_jax.planner import PlannerConfig, peg_score, plan_goal, start_search
 
 

@@ -1,202 +1,225 @@
-"""Frozen configuration dataclasses of the learning core and the presets "paper", "cpu", "debug".
+"""The root config of a run: `resolve_config(arguments, valid_envs) -> Config`.
 
-`paper` holds the PEG values for state-based tasks (reference/agent.md sections 1-3, 5.3). `cpu` keeps the
-architecture and scales widths, batch, ensemble size and imagination starts so that one train step of all
-five learners fits in ~100 ms on a 2-core CPU (numbers in experiments/bench_core.py and the README).
-`debug` is tiny, for tests. Presets overlay the defaults with `dataclasses.replace`; the run-level configs
-(planner, training loop) live in config_run.py.
+    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu", "wm.deter=64"], ALL_ENVS)
+    config.run / config.agent / config.planner / config.schedule / config.baseline
+    # RunConfig (here), AgentConfig (learner_config.py), PlannerConfig (planner.py),
+    # ScheduleConfig (goal_schedule.py), ModelFreeConfig (baselines/baseline_config.py)
+    json.dumps(config_to_dict(config))  ->  config_from_dict(Config, loaded)
+
+`Config` is the ONE config a run has and writes to config.json; each part stays next to the code it
+configures. `resolve_config` layers defaults < preset < the task's own defaults (its `default_config()`,
+next to the task's class in envs_mjx) < the agent's settings (its registry entry, registry.py) < the
+user's keys. The tools it uses (overrides, JSON round trips, one-line ConfigErrors) are config_tree.py's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from typing import Literal
+
+from envs_mjx import env_class
+from morefree_jax import registry
+from morefree_jax.baselines.baseline_config import ModelFreeConfig
+from morefree_jax.config_tree import (
+    ConfigError,
+    apply_overrides,
+    check_choice,
+    config_from_dict,
+    config_to_dict,
+    field_types,
+    valid_keys,
+)
+from morefree_jax.goal_schedule import ScheduleConfig
+from morefree_jax.learner_config import PRESETS, AgentConfig, preset
+from morefree_jax.planner import PlannerConfig
+
+__all__ = ["Config", "ConfigError", "RunConfig", "apply_overrides", "config_from_dict", "config_to_dict",
+           "resolve_config", "valid_keys"]
+
+MAX_SEED = 2**32 - 1  # jax.random.PRNGKey keeps the low 32 bits: larger seeds would collide
 
 
-def _positive(config, *names: str) -> None:
-    """ValueError unless each field (a number, or every width of a non-empty tuple) is > 0."""
-    for name in names:
-        value = getattr(config, name)
-        values = value if isinstance(value, tuple) else (value,)
-        if not values or any(v <= 0 for v in values):
-            raise ValueError(f"{name} must be > 0{' (every entry)' if isinstance(value, tuple) else ''}, "
-                             f"got {value}")
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """One training run. Step counts are env steps of the single reset-free stream.
 
+    Task-dependent fields (None here) are filled from the task's `default_config()` by resolve_config:
+    total_steps (the task's budget), train_every (env steps per gradient update: the paper's train ratio),
+    subgoal_threshold (learned distance, env steps, under which the go phase switches to exploring).
+    prefill: random-action steps before learning (PEG point maze: 50 episodes x 50 = 2500 steps).
+    eval_every: PEG point maze evaluates every 1e4 steps. run_dir: None = runs/<env>/<agent>/seed<seed>.
+    pretrain: gradient updates right after the prefill (PEG: 100), rounded up to whole chunks of updates.
+    hard_reset_every: None = the task's own period.
+    visitation_bins: bins per axis of the replay's xy visitation histogram logged at each evaluation.
+    checkpoint_minutes: also checkpoint after this much wall-clock time (slow machines); results do not
+    depend on where checkpoints fall, so it may change on resume.
+    seed_axis: how the seeds of a multi-seed run share one program (compile.py): "map" (a loop inside the
+    program, bit-exact single-seed numbers), "vmap" (batched, for accelerators), "auto" (map on CPU, vmap
+    on GPU/TPU); it may change on resume.
+    codegen: how XLA compiles a run's programs: "optimized" (XLA's default) or "fast", XLA's backend
+    optimisation level 0 for every program (LLVM unoptimised): they compile in about half the time, run
+    more slowly (MJX physics many times slower) and round differently (README, Training and evaluation).
+    For short debug runs and the tests; it may not change on resume (the numbers do).
+    """
 
-def _within(config, name: str, low: float, high: float) -> None:
-    value = getattr(config, name)
-    if not low <= value <= high:
-        raise ValueError(f"{name} must be in [{low}, {high}], got {value}")
-
-
-
-@dataclass(frozen=True)
-class OptimizerConfig:
-    """Adam with global-norm clipping and decoupled multiplicative weight decay (DreamerV2 optimiser)."""
-
-    lr: float = 8e-5
-    eps: float = 1e-5
-    clip: float = 100.0
-    weight_decay: float = 1e-6
-
-    def __post_init__(self):
-        _positive(self, "lr", "eps", "clip")
-        _within(self, "weight_decay", 0.0, 1.0)
-
-
-@dataclass(frozen=True)
-class WorldModelConfig:
-    deter: int = 200
-    hidden: int = 200
-    stoch: int = 50
-    min_std: float = 0.1
-    encoder_layers: tuple[int, ...] = (400, 400, 400)  # embed size = last width
-    decoder_layers: tuple[int, ...] = (400, 400, 400)
-    embed_head_layers: tuple[int, ...] = (400, 400, 400)
-    kl_balance: float = 0.8
-    kl_free: float = 1.0
-    kl_scale: float = 1.0
-    opt: OptimizerConfig = OptimizerConfig(lr=3e-4)
-    unroll: int = 1  # lax.scan unroll of observe (performance only; bench_core unrolls to count FLOPs)
-    gru_bias: bool = True  # DreamerV2's GRU input layer has a bias; run dirs made before this key had none
-
-    def __post_init__(self):
-        _positive(self, "deter", "hidden", "stoch", "min_std", "encoder_layers", "decoder_layers",
-                  "embed_head_layers", "unroll")
-        _within(self, "kl_balance", 0.0, 1.0)
-        if self.kl_free < 0 or self.kl_scale < 0:
-            raise ValueError(f"kl_free and kl_scale must be >= 0, got {self.kl_free}, {self.kl_scale}")
-
-
-@dataclass(frozen=True)
-class ActorCriticConfig:
-    actor_layers: tuple[int, ...] = (400, 400, 400, 400)
-    critic_layers: tuple[int, ...] = (400, 400, 400, 400)
-    actor_min_std: float = 0.1
-    horizon: int = 15
-    discount: float = 0.99
-    lambda_: float = 0.95
-    entropy: float = 1e-4
-    target_every: int = 100  # hard copy of the critic into the target critic, first update copies
-    # lax.scan unroll of imagination (performance only). Unrolling the short horizon lets XLA schedule the
-    # backward pass as straight-line code: measured faster on CPU, at the price of compile time.
-    unroll: int = 1
-    actor_opt: OptimizerConfig = OptimizerConfig()
-    critic_opt: OptimizerConfig = OptimizerConfig()
+    env: str = "point_umaze"
+    agent: str = "morefree"
+    preset: str = "cpu"
+    seed: int = 0
+    total_steps: int | None = None
+    prefill: int = 2_500
+    train_every: int | None = None
+    eval_every: int = 10_000
+    eval_episodes: int = 10
+    checkpoint_every: int = 10_000
+    keep_checkpoints: int = 3
+    log_every: int = 1_000
+    run_dir: str | None = None
+    pretrain: int = 100
+    hard_reset_every: int | None = None
+    subgoal_threshold: float | None = None
+    visitation_bins: int = 50
+    checkpoint_minutes: float = 10.0
+    seed_axis: Literal["auto", "map", "vmap"] = "auto"
+    codegen: Literal["optimized", "fast"] = "optimized"
 
     def __post_init__(self):
-        _positive(self, "actor_layers", "critic_layers", "actor_min_std", "horizon", "discount",
-                  "target_every", "unroll")
-        _within(self, "discount", 0.0, 1.0)
-        _within(self, "lambda_", 0.0, 1.0)
-        if self.entropy < 0:
-            raise ValueError(f"entropy must be >= 0, got {self.entropy}")
+        if self.total_steps is not None and self.total_steps <= 0:  # None: the task's budget
+            raise ConfigError(f"run.total_steps must be > 0, got {self.total_steps}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ConfigError(f"run.seed must be in 0..{MAX_SEED} (JAX keys keep 32 bits), got {self.seed}")
+        positive = ("eval_every", "eval_episodes", "checkpoint_every", "keep_checkpoints",
+                    "log_every", "visitation_bins")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"run.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("prefill", "pretrain"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"run.{name} must be >= 0, got {getattr(self, name)}")
+        if self.checkpoint_minutes <= 0:
+            raise ConfigError(f"run.checkpoint_minutes must be > 0, got {self.checkpoint_minutes}")
+        for name in ("train_every", "hard_reset_every", "subgoal_threshold"):
+            if getattr(self, name) is not None and getattr(self, name) <= 0:
+                raise ConfigError(f"run.{name} must be > 0 or none, got {getattr(self, name)}")
+
+    def require_task_defaults(self) -> None:
+        """A ConfigError unless the task's defaults (TASK_RUN_KEYS) are filled, as resolve_config does."""
+        unresolved = [key for key in TASK_RUN_KEYS if getattr(self, key) is None]
+        if unresolved:
+            raise ConfigError(f"run.{', run.'.join(unresolved)} unset: build the config with resolve_config, "
+                              "which fills the task's defaults")
+
+    @property
+    def resolved_run_dir(self) -> str:
+        return self.run_dir or f"runs/{self.env}/{self.agent}/seed{self.seed}"
 
 
-@dataclass(frozen=True)
-class DistanceConfig:
-    layers: tuple[int, ...] = (400, 400, 400, 400)
-    num_pairs: int = 256
-    neg_factor: float = 0.0  # point maze 0.0; walker / ant / 3-stack 0.1
-    opt: OptimizerConfig = OptimizerConfig()
+# ---- the root config of a run -------------------------------------------------------------------
 
-    def __post_init__(self):
-        _positive(self, "layers", "num_pairs")
-        _within(self, "neg_factor", 0.0, 1.0)
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a run depends on, written to <run_dir>/config.json: the training run, the learner
+    (core presets), the goal search and the goal schedule (set by the variant, `variants.py`), and the
+    model-free baselines' learners (baselines/baseline_config.py). Which sections an agent reads: its
+    registry entry (registry.py)."""
 
-
-@dataclass(frozen=True)
-class ExploreConfig:
-    members: int = 10
-    layers: tuple[int, ...] = (400, 400, 400, 400)
-    opt: OptimizerConfig = OptimizerConfig(lr=3e-4)
-    ac: ActorCriticConfig = ActorCriticConfig(discount=0.99)
-
-    def __post_init__(self):
-        _positive(self, "layers")
-        if self.members < 2:  # the exploration reward is the members' disagreement
-            raise ValueError(f"members must be >= 2, got {self.members}")
+    run: RunConfig = dataclasses.field(default_factory=RunConfig)
+    agent: AgentConfig = dataclasses.field(default_factory=AgentConfig)
+    planner: PlannerConfig = dataclasses.field(default_factory=PlannerConfig)
+    schedule: ScheduleConfig = dataclasses.field(default_factory=ScheduleConfig)
+    baseline: ModelFreeConfig = dataclasses.field(default_factory=ModelFreeConfig)
 
 
-@dataclass(frozen=True)
-class ReplayConfig:
-    capacity: int = 1_000_000
-    batch: int = 45
-    length: int = 50
-    max_bytes: int = 8 * 2**30  # memory the buffer may take; a larger capacity is a clear error
-
-    def __post_init__(self):
-        _positive(self, "capacity", "batch", "max_bytes")
-        if self.length < 2:
-            raise ValueError(f"length must be >= 2 (a sequence), got {self.length}")
-
-
-@dataclass(frozen=True)
-class AgentConfig:
-    wm: WorldModelConfig = field(default_factory=WorldModelConfig)
-    gc: ActorCriticConfig = field(default_factory=ActorCriticConfig)
-    distance: DistanceConfig = field(default_factory=DistanceConfig)
-    explore: ExploreConfig = field(default_factory=ExploreConfig)
-    replay: ReplayConfig = field(default_factory=ReplayConfig)
-    alpha: float = 0.2  # imagination goals: alpha/2 eval goals, alpha/2 initial states, 1-alpha replay
-    imag_starts: int = 0  # posterior states imagination starts from; 0 = every state of the batch (PEG)
-    # Min-max normalise observations by the task's observation_bounds (envs_mjx/normalise.py), as PEG does
-    # for block stacking; the Fetch tasks, which take that config, turn it on.
-    normalise_observations: bool = False
-
-    def __post_init__(self):
-        _within(self, "alpha", 0.0, 2.0)  # 2: every imagination goal an evaluation goal (dreamer_gc)
-        if self.imag_starts < 0:
-            raise ValueError(f"imag_starts must be >= 0 (0: every posterior state), got {self.imag_starts}")
+# CLI names of the run's identity; every other key is dotted: run.*, agent.*, planner.*, schedule.*, or a
+# group of the learner without the "agent." prefix (wm.deter=64).
+SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed", "steps": "total_steps"}
+# Keys that may change when a run dir is resumed: they change nothing computed (where the dir is, the step
+# budget, the cadence of logs, evaluations and checkpoints, how seeds share a program). A change is recorded
+# in the run dir's provenance.jsonl.
+RESUMABLE_KEYS = ("run.run_dir", "run.total_steps", "run.checkpoint_minutes", "run.seed_axis",
+                  "run.checkpoint_every", "run.keep_checkpoints", "run.log_every", "run.eval_every")
+# Filled from the task's default_config(); a run needs them resolved (resolve_config does it).
+TASK_RUN_KEYS = ("total_steps", "train_every", "subgoal_threshold")
 
 
-def _paper() -> AgentConfig:
-    gc = ActorCriticConfig(unroll=15)
-    return AgentConfig(gc=gc, explore=ExploreConfig(ac=gc))
+def _full_key(key: str) -> str:
+    """Maps CLI shorthands to dotted keys of Config (wm.deter -> agent.wm.deter, eval_every -> run.*)."""
+    head = key.split(".")[0]
+    if head in field_types(Config):
+        return key
+    if "." in key and head in field_types(AgentConfig):
+        return "agent." + key
+    if "." not in key and key in field_types(RunConfig):
+        return "run." + key
+    if key == "alpha":
+        raise ConfigError("alpha is ambiguous; set agent.alpha (imagination) or schedule.alpha (collection)")
+    run_keys = [name for name in field_types(RunConfig) if name not in SHORT_KEYS.values()]
+    shown = ", ".join([*SHORT_KEYS, *run_keys, "agent.<key>", "planner.<key>", "schedule.<key>",
+                       "baseline.<key>",
+                       *(f"{name}.<key>" for name, tp in field_types(AgentConfig).items()
+                         if dataclasses.is_dataclass(tp))])
+    raise ConfigError(f"unknown key {key!r}; valid keys: {shown}")
 
 
-def _cpu() -> AgentConfig:
-    # Chosen by measurement (experiments/bench_core.py, README): the paper's structure (layer counts,
-    # horizon, heads, losses) with every width 128 (stoch 32), batch 16 x 50, 64 imagination starts
-    # (random subset of the 800 posteriors) and 4 ensemble members; imagination scans fully unrolled.
-    # The imagination parts scale with the starts: 64 -> ~80 ms per train step, 96 -> ~100, 128 -> ~140
-    # on the idle 2-core machine, so 64 keeps the step inside the 100 ms budget with a margin.
-    width = (128, 128, 128)
-    wm = WorldModelConfig(deter=128, hidden=128, stoch=32, encoder_layers=width, decoder_layers=width,
-                          embed_head_layers=width)
-    mlp = (128, 128, 128, 128)
-    gc = ActorCriticConfig(actor_layers=mlp, critic_layers=mlp, unroll=15)
-    explore = ExploreConfig(members=4, layers=mlp, ac=gc)
-    return AgentConfig(
-        wm=wm, gc=gc, distance=DistanceConfig(layers=mlp), explore=explore,
-        replay=ReplayConfig(batch=16, length=50), imag_starts=64,
-    )
+def split_arguments(arguments) -> tuple[dict[str, str], list[str]]:
+    """CLI words "key=value" -> (the short identity keys, the other overrides with full dotted keys)."""
+    short, overrides, seen = {}, [], {}
+    for argument in arguments:
+        key, sep, value = argument.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"argument {argument!r} must look like key=value (e.g. env=point_umaze)")
+        full = f"run.{SHORT_KEYS[key]}" if key in SHORT_KEYS else _full_key(key)
+        if full in seen:  # "last wins" would silently drop one of them
+            raise ConfigError(f"{full} is given twice ({seen[full]} and {argument}); give it once")
+        seen[full] = argument
+        if key in SHORT_KEYS:
+            short[SHORT_KEYS[key]] = value.strip()
+        else:
+            overrides.append(f"{full}={value}")
+    return short, overrides
 
 
-def _debug() -> AgentConfig:
-    small = (32, 32)
-    wm = WorldModelConfig(
-        deter=32, hidden=32, stoch=8, encoder_layers=small, decoder_layers=small, embed_head_layers=small,
-        opt=OptimizerConfig(lr=1e-3),
-    )
-    gc = ActorCriticConfig(actor_layers=small, critic_layers=small, horizon=5, target_every=5)
-    explore = ExploreConfig(members=3, layers=small, ac=gc)
-    return AgentConfig(
-        wm=wm, gc=gc, distance=DistanceConfig(layers=small, num_pairs=64, neg_factor=0.1), explore=explore,
-        replay=ReplayConfig(capacity=10_000, batch=4, length=10), imag_starts=0,
-    )
+def task_overrides(env: str) -> list[str]:
+    """The task's default_config() as "dotted.key=value" overrides (values parsed by the field types)."""
+    def text(value) -> str:
+        return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+    return [f"{key}={text(value)}" for key, value in env_class(env).default_config().items()]
 
 
-PRESETS = {"paper": _paper, "cpu": _cpu, "debug": _debug}
+def resolve_config(arguments, valid_envs) -> Config:
+    """The root config of `train env=... agent=... preset=... seed=... steps=... key=value ...`.
 
+    Layers, later wins: defaults; the preset (learner sizes); the task's default_config() (PEG's per-task
+    values, train ratio, budget, prefill, planner); the agent's registry entry (a variant's schedule and
+    imagination goals, a model-free agent's seed phase as its prefill); the user's keys (steps, seed and the
+    dotted overrides). Errors are one-line ConfigErrors."""
 
-def preset(name: str) -> AgentConfig:
-    """The named preset; unknown names are an error listing the valid ones."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(PRESETS)}")
-    return PRESETS[name]()
-
-
-def replace(config, **changes):
-    """`dataclasses.replace` re-exported so callers overlay presets without importing dataclasses."""
-    return dataclasses.replace(config, **changes)
+    short, overrides = split_arguments(arguments)
+    identity = {key: short.pop(key) for key in ("env", "agent", "preset") if key in short}
+    for override in list(overrides):  # identity keys given dotted (run.env=ant) choose the layers too
+        key, _, value = override.partition("=")
+        if key in ("run.env", "run.agent", "run.preset"):
+            identity[key[4:]] = value
+            overrides.remove(override)
+    run = apply_overrides(RunConfig(), [f"{key}={value}" for key, value in identity.items()])
+    check_choice("env", run.env, valid_envs)
+    check_choice("agent", run.agent, registry.AGENTS)
+    check_choice("preset", run.preset, PRESETS)
+    config = Config(run=run, agent=preset(run.preset))
+    config = apply_overrides(config, task_overrides(run.env))
+    config = registry.configure(config, run.agent)
+    try:
+        config = apply_overrides(config, [f"run.{key}={value}" for key, value in short.items()])
+    except ConfigError as error:  # speak of the CLI name "steps", not the field
+        message = str(error).replace("run.total_steps", "steps").replace("total_steps", "steps")
+        raise ConfigError(message) from None
+    config = apply_overrides(config, overrides)
+    missing = [key for key in TASK_RUN_KEYS if getattr(config.run, key) is None]
+    if missing:
+        raise ConfigError(f"{', '.join(missing)} may not be none (the task's defaults fill them)")
+    if config.run.total_steps <= config.run.prefill:
+        raise ConfigError(f"steps ({config.run.total_steps}) must be larger than the prefill "
+                          f"({config.run.prefill} random steps before learning); lower prefill or raise it")
+    return config

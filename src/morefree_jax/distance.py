@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from morefree_jax.config import DistanceConfig
+from morefree_jax.learner_config import DistanceConfig
 from morefree_jax.networks import ContextMLP, NetState, gradient_update, init_net_state, make_optimizer
 
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from morefree_jax.config import OptimizerConfig
+from morefree_jax.learner_config import OptimizerConfig
 
 # A Python float, not jnp: a jnp constant starts JAX's backend on import, too early for runtime.configure()
 HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)  # float32(.) equals the jnp.log value

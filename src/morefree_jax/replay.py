@@ -20,7 +20,7 @@ import flax
 import jax
 import jax.numpy as jnp
 
-from morefree_jax.config import ReplayConfig
+from morefree_jax.learner_config import ReplayConfig
 from morefree_jax.world_model import Batch
 
 
@@ -117,5 +117,3 @@ def sample(state: ReplayState, key: jax.Array, batch: int, length: int) -> Batch
     return Batch(state.obs[index], state.action[index], is_first)
 
 
-def num_valid(state: ReplayState, length: int) -> jax.Array:
-    return jnp.sum(valid_starts(state, length))

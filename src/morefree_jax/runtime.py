@@ -6,7 +6,7 @@ benchmarks calls `morefree_jax.runtime.configure()` first thing, before any JAX 
 the first cell. `settings()` tells what was applied (mode "unconfigured" if nothing was).
 
 `configure(mode)`, or MOREFREE_JAX_RUNTIME when mode is None, picks them (measured with
-experiments/bench_core.py on the 2-core dev machine):
+experiments/benchmarks/core.py on the 2-core dev machine):
 
 - `standard` (the default): `--xla_cpu_prefer_vector_width=512` on CPUs with AVX-512. XLA's loop fusions
   (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256: the `cpu` train step
@@ -16,7 +16,7 @@ experiments/bench_core.py on the 2-core dev machine):
   model-free chunk stores into and samples from its replay in every step of one scan, and by default
   XLA copied a replay field twice per step (README "Benchmarks", model-free section, for the gain). Only
   copies go: the numbers stay bit for bit the same.
-- `large`, for paper-size learners on CPU (`make train PRESET=paper` and bench_core's paper row set it):
+- `large`, for paper-size learners on CPU (`make train PRESET=paper`, the core benchmark's paper row):
   `standard` plus two changes that only pay off when one update moves gigabytes.
   1. Page faults. XLA allocates an execution's temporaries (6.5 GB at `paper`) afresh on every call;
      glibc serves that from a fresh `mmap` (always, for a thread off the main arena) and unmaps it on
@@ -37,7 +37,7 @@ faulted in twice.
 Measured on the 2-core machine: the `paper` train step 6.8-7.1 s (glibc, `large`) -> 5.8 s, the `cpu`
 step 70-75 -> 60-65 ms. An allocator is chosen when a process starts, so it is preloaded by the launchers:
 `make train/evaluate/bench` run their command under `allocator_env()` (printed by
-`print_allocator_env()`), bench_core's paper child process too. With jemalloc loaded,
+`print_allocator_env()`), the core benchmark's paper child process too. With jemalloc loaded,
 `large` leaves glibc's malloc alone (it is not used). MOREFREE_JAX_JEMALLOC=0 opts out.
 """
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from morefree_jax.config_run import MAX_SEED, Config, ConfigError
+from morefree_jax.config import MAX_SEED, Config, ConfigError
 
 
 def check_seeds(seeds) -> tuple[int, ...]:

@@ -1,7 +1,7 @@
 """Named agents: MoReFree, its MBRL baselines and ablations, as settings of one root config.
 
 Every variant is the same learner; they differ only in where goals come from:
-  collection (go_explore.ScheduleConfig: kind, alpha) and imagination (AgentConfig.alpha: alpha/2 of the
+  collection (goal_schedule.ScheduleConfig: kind, alpha) and imagination (AgentConfig.alpha: alpha/2 of the
   goal-conditioned policy's imagination goals are evaluation goals, alpha/2 initial states, the rest replay
   states), plus whether an exploration policy runs after the go phase.
 
@@ -15,10 +15,8 @@ Every variant is the same learner; they differ only in where goals come from:
     mf_no_imag    ablation: Back-and-Forth Go-Explore only (imagination as rf_peg)              [paper 6]
     mf_task_only  ablation: alpha 1 (only task goals in collection and imagination)             [paper 6]
 
-The model-free baselines (baselines/agents.py) are agents of the same runs but other learners:
-
-    oracle_sac    episodic SAC on the evaluation task with its sparse reward: the only agent with resets
-    r3l           R3L: forward SAC on a learned goal classifier, backward RND exploration, reset-free
+The model-free baselines are agents of the same runs with other learners (baselines/, each its own
+subpackage); registry.py lists every agent, these and those.
 
 dreamer_gc sets AgentConfig.alpha = 2: the imagination mix draws an evaluation goal with probability
 alpha/2, so 2 makes every imagination goal an evaluation goal without a separate switch in the core.
@@ -29,14 +27,9 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
-from morefree_jax.baselines.config import MODEL_FREE_AGENTS
-
-SEED_STEPS = 10_000  # the model-free agents' seed phase (MEDAL num_seed_frames), as run.prefill
-IBC_SEED_STEPS = 800  # ibc's own (baselines.md 4.1 num_seed_steps; its first 400 act at random)
-
 
 class Variant(NamedTuple):
-    schedule_kind: str  # go_explore.SCHEDULE_KINDS
+    schedule_kind: str  # goal_schedule.SCHEDULE_KINDS
     collect_alpha: float  # ScheduleConfig.alpha (back_and_forth only)
     imagination_alpha: float  # AgentConfig.alpha
     explore: bool  # an exploration phase follows the go phase
@@ -54,14 +47,6 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
-# Every agent name a run accepts, with its one-line description.
-AGENTS: dict[str, str] = {**{name: v.description for name, v in VARIANTS.items()}, **MODEL_FREE_AGENTS}
-
-
-def is_model_free(name: str) -> bool:
-    return name in MODEL_FREE_AGENTS
-
-
 def variant(name: str) -> Variant:
     """The named variant; unknown names are an error listing the valid ones."""
     if name not in VARIANTS:
@@ -70,14 +55,9 @@ def variant(name: str) -> Variant:
 
 
 def apply_variant(config, name: str):
-    """The root config (config_run.Config) with the variant's schedule and imagination settings.
+    """The root config (config.Config) with the variant's schedule and imagination settings.
     Planner goals are searched afresh for every planner chunk; episodic PEG makes its one goal choice per
-    hard-reset segment, so it searches once per segment (paper appendix, baselines). A model-free agent
-    gets its seed steps (MEDAL's 10,000, IBC's 800) as its prefill and nothing else (it reads none of the
-    learner keys)."""
-    if is_model_free(name):
-        seed_steps = IBC_SEED_STEPS if name == "ibc" else SEED_STEPS
-        return dataclasses.replace(config, run=dataclasses.replace(config.run, prefill=seed_steps))
+    hard-reset segment, so it searches once per segment (paper appendix, baselines)."""
     chosen = variant(name)
     schedule = dataclasses.replace(config.schedule, kind=chosen.schedule_kind, alpha=chosen.collect_alpha)
     agent = dataclasses.replace(config.agent, alpha=chosen.imagination_alpha)

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from morefree_jax.config import WorldModelConfig
+from morefree_jax.learner_config import WorldModelConfig
 from morefree_jax.networks import (
     MLP,
     RSSM,

@@ -1,0 +1,1 @@
+"""Analysis of run directories: grouping, the paper protocol statistics, tables and figures."""

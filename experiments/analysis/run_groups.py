@@ -1,0 +1,234 @@
+"""Run directories grouped by task and agent, with the statistics of the paper's protocol (mean and standard
+error over seeds) and the results table. No JAX, no matplotlib: experiments/plots.py draws from these.
+
+    runs, skipped = find_runs("runs")                  # every run dir below (config.json + metrics.jsonl)
+    groups = group_runs(runs)                          # {(task, agent): [RunRecord, ...]} sorted by seed
+    steps, mean, stderr = curve(groups[key], "eval/success")
+    rows = results_rows(groups, marks={"point_umaze": [25000, 50000, 100000]})
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+
+import numpy as np
+
+from morefree_jax.logger import PROVENANCE_FILE, read_metrics
+
+
+class NoRunsError(Exception):
+    """No usable run directory was found (the message says where and why)."""
+
+
+@dataclasses.dataclass
+class RunRecord:
+    """One run dir: its task, agent and seed, per-step merged metrics, and the commits that wrote it."""
+
+    run_dir: pathlib.Path
+    task: str
+    agent: str
+    seed: int
+    steps: dict[int, dict]
+    commits: tuple[str, ...]
+
+    def evaluations(self, key: str = "eval/success") -> dict[int, float]:
+        return {step: record[key] for step, record in sorted(self.steps.items()) if key in record}
+
+def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
+    """Short commits of every start of the run (provenance.jsonl), '+dirty' when the tree had changes."""
+    path = run_dir / PROVENANCE_FILE
+    if not path.exists():
+        return ("unknown",)
+    seen = []
+    for line in path.read_text().splitlines():
+        entry = json.loads(line)
+        commit = (entry.get("commit") or "unknown")[:7] + ("+dirty" if entry.get("dirty") else "")
+        if commit not in seen:
+            seen.append(commit)
+    return tuple(seen) or ("unknown",)
+
+
+def read_run(run_dir: pathlib.Path) -> RunRecord:
+    """The run in `run_dir`; ValueError (one line: why) when it cannot be used."""
+    metrics = run_dir / "metrics.jsonl"
+    if not metrics.exists():
+        raise ValueError("no metrics.jsonl (not started yet?)")
+    try:
+        run = json.loads((run_dir / "config.json").read_text())["run"]
+        task, agent, seed = run["env"], run["agent"], int(run["seed"])
+    except (KeyError, ValueError, TypeError) as error:
+        raise ValueError(f"config.json is not a run config ({error})") from None
+    steps: dict[int, dict] = {}
+    for record in read_metrics(metrics):
+        steps.setdefault(int(record["step"]), {}).update(record)
+    record = RunRecord(run_dir, task, agent, seed, steps, _commits(run_dir))
+    if not record.evaluations():
+        raise ValueError("no evaluation yet")
+    return record
+
+
+def find_runs(root, task: str | None = None, agents=None) -> tuple[list[RunRecord], list[str]]:
+    """(runs below `root`, one line per skipped directory saying why); `agents`: only these agents' runs.
+    NoRunsError when none is usable."""
+    root = pathlib.Path(root)
+    if not root.is_dir():
+        raise NoRunsError(f"{root} is not a directory")
+    runs, skipped = [], []
+    for config in sorted(root.rglob("config.json")):
+        run_dir = config.parent
+        try:
+            record = read_run(run_dir)
+        except ValueError as error:
+            skipped.append(f"skipped {run_dir}: {error}")
+            continue
+        if task is not None and record.task != task:
+            skipped.append(f"skipped {run_dir}: holds task {record.task}, not {task}")
+            continue
+        runs.append(record)
+    chosen = [run for run in runs if agents is None or run.agent in agents]
+    if not chosen:
+        where = f"{root}" + (f" for task {task}" if task else "")
+        if runs:  # there are runs, of other agents
+            found = ", ".join(sorted({run.agent for run in runs}))
+            raise NoRunsError(f"no run of {', '.join(agents)} found below {where} (agents there: {found})")
+        raise NoRunsError(f"no run with evaluations found below {where} (a run dir holds config.json and "
+                          f"metrics.jsonl; {len(skipped)} skipped)")
+    return chosen, skipped
+
+
+Groups = dict[tuple[str, str], list["RunRecord"]]
+
+
+def group_runs(runs: list[RunRecord], skipped: list[str] | None = None) -> Groups:
+    """{(task, agent): runs sorted by seed}. A seed present twice (a copy, an archived run) keeps the first
+    by path; a line saying which one is kept is appended to `skipped` when given."""
+    groups: Groups = {}
+    for run in sorted(runs, key=lambda r: (r.task, r.agent, r.seed, str(r.run_dir))):
+        group = groups.setdefault((run.task, run.agent), [])
+        kept = next((other for other in group if other.seed == run.seed), None)
+        if kept is None:
+            group.append(run)
+        elif skipped is not None:
+            skipped.append(f"skipped {run.run_dir}: seed {run.seed} of {run.agent} on {run.task} is taken "
+                           f"from {kept.run_dir} (give RUNS a narrower directory to choose)")
+    return groups
+
+
+def mean_stderr(values) -> tuple[float, float]:
+    """Mean and standard error (sample std / sqrt(n); NaN for one value) of a sequence."""
+    values = np.asarray(values, np.float64)
+    if values.size < 2:
+        return float(values.mean()), math.nan
+    return float(values.mean()), float(values.std(ddof=1) / math.sqrt(values.size))
+
+
+def curve(group: list[RunRecord], key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(steps, mean, standard error) of `key` over the seeds, at the steps every seed has logged it."""
+    series = [run.evaluations(key) for run in group]
+    steps = sorted(set.intersection(*(set(s) for s in series)))
+    stats = [mean_stderr([s[step] for s in series]) for step in steps]
+    return (np.asarray(steps), np.asarray([m for m, _ in stats]), np.asarray([e for _, e in stats]))
+
+
+def default_marks(groups, task: str, count: int = 4) -> list[int]:
+    """`count` evenly spaced step marks up to the furthest step every agent of `task` has evaluated (all
+    seeds), each moved down to the nearest step some agent evaluated. Agents may evaluate at different steps
+    (ibc, from its own seed phase): results_rows takes each one's latest evaluation at or before a mark."""
+    evaluated = [curve(g, "eval/success")[0].tolist() for (t, _), g in groups.items() if t == task]
+    if not evaluated or not all(evaluated):
+        return []
+    end, steps = min(s[-1] for s in evaluated), sorted(set().union(*evaluated))
+    targets = [end * (i + 1) / count for i in range(count)]
+    return sorted({max(s for s in steps if s <= target) for target in targets if steps[0] <= target})
+
+
+def step_at_mark(group: list[RunRecord], mark: int) -> int | None:
+    """The group's latest evaluation (every seed's) at or before `mark`; None if it did not reach the mark."""
+    steps = curve(group, "eval/success")[0].tolist()
+    if not steps or steps[-1] < mark or steps[0] > mark:
+        return None
+    return max(s for s in steps if s <= mark)
+
+
+RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_stderr", "final_success_mean",
+                  "final_success_stderr", "task_relevant_mean", "commits")
+
+
+def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
+    """One row per (task, agent, step mark) the group reached, at its latest evaluation at or before the
+    mark (`step`): success (any step) and at the last step of the evaluation episodes, task-relevant share
+    of the replay; mean and standard error over seeds."""
+    rows = []
+    for (task, agent), group in sorted(groups.items()):
+        for mark in marks.get(task, []):
+            step = step_at_mark(group, mark)
+            if step is None:
+                continue
+            at = [run.steps[step] for run in group]
+            success = mean_stderr([r["eval/success"] for r in at])
+            final = mean_stderr([r.get("eval/final_success", math.nan) for r in at])
+            relevant = mean_stderr([r.get("visitation/task_relevant", math.nan) for r in at])
+            commits = sorted({c for run in group for c in run.commits})
+            rows.append(dict(zip(RESULT_COLUMNS, (task, agent, len(group), step, *success, *final,
+                                                  relevant[0], " ".join(commits)), strict=True)))
+    return rows
+
+
+WINDOW_COLUMNS = ("task", "agent", "seeds", "start", "stop", "evaluations", "success_mean", "success_stderr",
+                  "final_success_mean", "final_success_stderr", "commits")
+
+
+def window_rows(groups, start: int, stop: int) -> list[dict]:
+    """One row per (task, agent) whose every seed has evaluated at `stop`: each seed's mean success over its
+    evaluations in [start, stop], then mean and standard error of those over seeds. Success at a single
+    evaluation swings between 0 and 1 in reset-free runs; a window says what the agent holds."""
+    rows = []
+    for (task, agent), group in sorted(groups.items()):
+        series = [run.evaluations("eval/success") for run in group]
+        if any(stop not in s for s in series):
+            continue
+        steps = sorted(set.intersection(*(set(s) for s in series)) & set(range(start, stop + 1)))
+        finals = [run.evaluations("eval/final_success") for run in group]
+        success = mean_stderr([np.mean([s[step] for step in steps]) for s in series])
+        final = mean_stderr([np.mean([f.get(step, math.nan) for step in steps]) for f in finals])
+        commits = sorted({c for run in group for c in run.commits})
+        rows.append(dict(zip(WINDOW_COLUMNS, (task, agent, len(group), start, stop, len(steps), *success,
+                                              *final, " ".join(commits)), strict=True)))
+    return rows
+
+
+def with_error(mean: float, stderr: float) -> str:
+    return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
+
+
+def markdown_table(rows: list[dict]) -> str:
+    lines = ["| task | agent | seeds | env steps | success | final success | task-relevant | commits |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | {row['step']:,} | "
+                     f"{with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{row['task_relevant_mean']:.3f} | {row['commits']} |")
+    return "\n".join(lines) + "\n"
+
+
+def window_markdown(rows: list[dict]) -> str:
+    lines = ["| task | agent | seeds | env steps | evaluations | mean success | mean final success "
+             "| commits |", "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "
+                     f"{row['start']:,}-{row['stop']:,} | {row['evaluations']} | "
+                     f"{with_error(row['success_mean'], row['success_stderr'])} | "
+                     f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
+                     f"{row['commits']} |")
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(rows: list[dict], columns: tuple[str, ...] = RESULT_COLUMNS) -> str:
+    def cell(value):
+        return f"{value:.4f}" if isinstance(value, float) else str(value)
+
+    return "\n".join([",".join(columns)] + [",".join(cell(row[c]) for c in columns) for row in rows]) + "\n"

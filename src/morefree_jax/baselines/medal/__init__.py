@@ -1,0 +1,1 @@
+"""MEDAL (agent.py), with its demonstrations (demos.py, demo_rollouts.py)."""
