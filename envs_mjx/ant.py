@@ -1,7 +1,7 @@
 """Ant (PEG's mrl ant body) in a square walled room, reset-free.
 
-Body, joints, actuators and contact parameters follow the mrl ant used by PEG (reference/envs.md section
-8): 8 motors with ctrl range +-30 (actions in [-1, 1] are scaled by 30), timestep 0.02, frame skip 5.
+Body, joints, actuators and contact parameters follow the mrl ant used by PEG (docs/tasks.md, "Ant"):
+8 motors with ctrl range +-30 (actions in [-1, 1] are scaled by 30), timestep 0.02, frame skip 5.
 MoReFree put the ant in a square room with the start (0, 0) at its centre and the goal square [2, 3]^2 in
 its top-right corner (paper, appendix and task list); the room's size is not published, so ours is
 [-4, 4]^2, the goal square 1 unit (more than a leg's reach along x or y) from the north and east walls. The
@@ -105,8 +105,8 @@ class Ant(ResetFreeEnv):
 
     @classmethod
     def default_config(cls) -> dict:
-        """PEG's ant-maze values (agent.md 8.1, 4.1, 5.1-5.2) but the planner horizon; budget 8e5 steps
-        (the paper: 4 hard resets at one per 2e5 steps)."""
+        """PEG's ant-maze values (docs/tasks.md, "Per-task defaults") but the planner horizon; budget 8e5
+        steps (the paper: 4 hard resets at one per 2e5 steps)."""
         return {
             "run.total_steps": 800_000, "run.prefill": 2_500, "run.train_every": 2,
             "run.subgoal_threshold": 2.0,

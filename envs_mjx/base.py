@@ -5,7 +5,7 @@ Every task is an unbatched brax `Env` (`reset(rng) -> State`, `step(state, actio
 the state can be rendered or compared with C MuJoCo. Batch with `jax.vmap`. Step-time randomness lives in
 `state.info["rng"]` and is split afresh on every use.
 
-The reset-free extension (design.md section 3):
+The reset-free extension (docs/tasks.md, "The task API"):
   eval_goals(rng) / initial_states(rng)  one sample of the evaluation-goal / initial-state distribution,
                                          as an observation vector (goal space = observation space)
   evaluation_goals(rng, num_episodes)    the goals of one evaluation (default: independent eval_goals)
@@ -75,9 +75,10 @@ def distance_to_box(low: jax.Array, high: jax.Array, x: jax.Array) -> jax.Array:
 
 
 def learner_defaults(entropy: float, discount: float, p2e_discount: float, neg_factor: float) -> dict:
-    """PEG's per-task learner keys (agent.md 8.1: actor_ent, discount, p2e_discount,
-    dd_neg_sampling_factor) as dotted config keys. The Plan2Explore actor-critic shares the goal-conditioned
-    one's entropy scale (agent.md 3: "same actor/critic/optimiser/horizon/lambda/entropy settings")."""
+    """PEG's per-task learner keys (actor_ent, discount, p2e_discount, dd_neg_sampling_factor;
+    docs/tasks.md, "Per-task defaults") as dotted config keys. The Plan2Explore actor-critic shares the
+    goal-conditioned one's entropy scale: PEG gives both learners the same actor, critic, optimiser,
+    horizon, lambda and entropy settings (docs/learner.md, "Plan2Explore")."""
     return {"agent.gc.entropy": entropy, "agent.explore.ac.entropy": entropy, "agent.gc.discount": discount,
             "agent.explore.ac.discount": p2e_discount, "agent.distance.neg_factor": neg_factor}
 
@@ -213,7 +214,7 @@ class ResetFreeEnv(Env, abc.ABC):
 
     def render_frames(self, datas, width: int = 320, height: int = 240, camera: int | str = -1) -> np.ndarray:
         """RGB frames (T, H, W, 3) of an iterable of unbatched pipeline states, through one renderer: making
-        a renderer costs more than rendering a frame (README, Tests)."""
+        a renderer costs more than rendering a frame (docs/performance.md, "Rendering")."""
         with mujoco.Renderer(self.mj_model, height=height, width=width) as renderer:
             frames = []
             for data in datas:

@@ -19,7 +19,8 @@ Observation (25-D, the original's order): grip position (3), block position (3),
 finger qpos (2), block rotation as static-xyz Euler angles (3), (block - grip) linear velocity * dt (3),
 block angular velocity (world frame) * dt (3), grip linear velocity * dt (3), finger qvel * dt (2).
 
-Deviations from the original, on purpose (also in README):
+Deviations from the original, on purpose (also in docs/tasks.md,
+"Fetch tasks: push, pick_place, push_hard, pick_place_hard"):
   - floating gripper instead of the arm; the grip site is 1.5 cm above the finger bottoms and the palm
     box is visual only (a block on the table cannot reach it: the grip target is clipped to z >= 0.417,
     so the finger bottoms stay 2 mm above the table and the palm 3 cm above the block);
@@ -82,7 +83,8 @@ IBC_MIN_START_DISTANCE = 0.1  # block start at least this far from the gripper x
 IBC_AIR_HEIGHT = 0.45  # pick_place: half of the goals rise up to this above the table
 # IBC's block body sits 2.5 cm off its slides' frame in x and y, and the sampled start (like the slide
 # limits' centre, the initial gripper xy) is written into the slide qpos: block starts and the confinement
-# box are centred 2.5 cm off the gripper xy, the goals are not (envs.md, IBC block-position constraint).
+# box are centred 2.5 cm off the gripper xy, the goals are not
+# (docs/tasks.md, "IBC's block-position constraint").
 IBC_BLOCK_OFFSET = np.array([0.025, 0.025, 0.0])
 HARD_BLOCK_START = np.array([1.43, 0.76, BLOCK_REST_Z])
 # qpos layout of both models: grip slides x y z, fingers r l, block position (3) + quaternion (4).
@@ -136,11 +138,11 @@ class _Fetch(ResetFreeEnv):
 
     @classmethod
     def default_config(cls) -> dict:
-        """PEG's closest task, 3-block stacking (agent.md 8.1, 4.1): actor entropy 1e-5, negatives 0.1,
-        discounts 0.99, subgoal threshold 1, prefill 25 episodes x 150 = 3750 steps. Budget 5e5 steps: the
-        paper's 5 hard resets at one per 1e5 steps for the hard tasks (IBC's versions: the same, no count
-        published). Planner: PEG's 3-stack MPPI (gamma 10, std_scale 0.5, last 10 steps) with 500 instead
-        of 2000 candidates for this CPU (choice); horizon 25 = H_G. Observations min-max normalised by
+        """PEG's closest task, 3-block stacking (docs/tasks.md, "Per-task defaults"): actor entropy 1e-5,
+        negatives 0.1, discounts 0.99, subgoal threshold 1, prefill 25 episodes x 150 = 3750 steps. Budget 5e5
+        steps: the paper's 5 hard resets at one per 1e5 steps for the hard tasks (IBC's versions: the same, no
+        count published). Planner: PEG's 3-stack MPPI (gamma 10, std_scale 0.5, last 10 steps) with 500
+        instead of 2000 candidates for this CPU (choice); horizon 25 = H_G. Observations min-max normalised by
         observation_bounds, as PEG's 3-stack agent sees them (its std_scale is in those units)."""
         return {
             "run.total_steps": 500_000, "run.prefill": 3_750, "run.train_every": 2,

@@ -4,13 +4,14 @@
     env.reset(rng).obs                                    # (obs - low) / (high - low), bounds of the task
     env.success(obs, goal)                                # the task's test, on the de-normalised vectors
 
-PEG trains its 3-block-stacking agent on observations min-max normalised by fixed bounds (agent.md 1.2), so
-that task's planner spread (`std_scale` 0.5) is half the normalised range, and the world model's
-reconstruction weighs every dimension by its range. Tasks that take that config (the Fetch tasks) turn it
-on with `agent.normalise_observations`; the run functions then wrap their env in this class, and every
-vector the world-model agent sees (stream, replay, goals, goal search) is normalised, while everything
-measured in the task's units (success, distances, task relevance, visitation views) is computed on the
-de-normalised vectors. The physics state (`pipeline_state`) is untouched, so rendering is unchanged.
+PEG trains its 3-block-stacking agent on observations min-max normalised by fixed bounds (docs/tasks.md,
+"Observations and the world-model agents"), so that task's planner spread (`std_scale` 0.5) is half the
+normalised range, and the world model's reconstruction weighs every dimension by its range. Tasks that take
+that config (the Fetch tasks) turn it on with `agent.normalise_observations`; the run functions then wrap
+their env in this class, and every vector the world-model agent sees (stream, replay, goals, goal search) is
+normalised, while everything measured in the task's units (success, distances, task relevance, visitation
+views) is computed on the de-normalised vectors. The physics state (`pipeline_state`) is untouched, so
+rendering is unchanged.
 """
 
 from __future__ import annotations

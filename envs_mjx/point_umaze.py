@@ -18,7 +18,7 @@ has no z joint and the sphere rests exactly on the floor, so the floor contact e
 puts the sphere's centre a hair below z = 0.5, which depends on the last bits of cos^2 + sin^2 of the
 heading in each RK4 stage. It then acts as a stiff velocity damper, otherwise not at all. MJX (float32)
 and C MuJoCo (float64) toss this coin differently for the same state but with the same odds, so
-trajectories agree only in distribution once the point moves (README: PointUMaze, and
+trajectories agree only in distribution once the point moves (docs/tasks.md, "PointUMaze", and
 tests/test_point_umaze_physics.py, for the measured agreement).
 
 Deviations from the original, on purpose:
@@ -29,7 +29,7 @@ Deviations from the original, on purpose:
     physics step, before the manual rule (`mj_data_from` recomputes them for rendering).
 A difference we did not choose: MJX's box-box routine reports contact points on a face rather than midway
 between the surfaces (and in some deep poses other points than C's), which changes the friction torque
-when the arrow sits deep in a wall block (README: PointUMaze).
+when the arrow sits deep in a wall block (docs/tasks.md, "PointUMaze").
 """
 
 from __future__ import annotations
@@ -159,9 +159,9 @@ class PointUMaze(ResetFreeEnv):
 
     @classmethod
     def default_config(cls) -> dict:
-        """PEG's point-maze values (agent.md 8.1, 4.1, 5.2): entropy 1e-4, discounts 0.99, no distance
-        negatives, prefill 50 x 50 = 2500 steps; train ratio 2 (paper); budget 2e5 steps (the paper: one
-        hard reset, at the start, at one per 2e5 steps). Planner: PEG's shooting CEM (500 candidates, 5
+        """PEG's point-maze values (docs/tasks.md, "Per-task defaults"): entropy 1e-4, discounts 0.99, no
+        distance negatives, prefill 50 x 50 = 2500 steps; train ratio 2 (paper); budget 2e5 steps (the paper:
+        one hard reset, at the start, at one per 2e5 steps). Planner: PEG's shooting CEM (500 candidates, 5
         iterations, elite 0.2, std_scale 4, initial-state candidate, all steps scored), horizon 50 = H_G.
         Deviation: subgoal threshold 1 step instead of PEG's 5: the point's action moves it at most 1 unit
         per step (physics adds up to ~0.3) and success is within 0.6, and with PEG's 5 the go phase ended

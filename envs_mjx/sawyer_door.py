@@ -1,6 +1,6 @@
 """Sawyer Door (EARL `sawyer_door`, as MoReFree simplified it): close a door that starts open.
 
-Control as the original (reference/envs.md section 3): action a in [-1, 1]^4; the mocap target moves by
+Control as the original (docs/tasks.md, "Sawyer Door"): action a in [-1, 1]^4; the mocap target moves by
 a[0:3] / 100 (at most 1 cm per axis and step) and is clipped to the workspace box
 [-0.5, 0.4, 0.05]..[0.5, 0.825, 0.5]; the hand follows the target through a soft equality (solref 0.02, 1);
 the fingers get ctrl = [a3, -a3] on position actuators (kp 400). One step = 5 substeps of 0.0025 s.

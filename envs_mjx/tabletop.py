@@ -1,6 +1,6 @@
 """Tabletop manipulation (EARL `tabletop_manipulation`): carry a mug to one of four pads.
 
-Dynamics are the original's kinematic rule, written in JAX (reference/envs.md section 2); the original
+Dynamics are the original's kinematic rule, written in JAX (docs/tasks.md, "Tabletop"); the original
 writes joint positions and never steps physics, so neither does this port:
   action a in [-1, 1]^3, scaled by 0.2;
   grasp: if a[2] > 0 and nothing is held, the mug is attached when the gripper (before moving) is closer

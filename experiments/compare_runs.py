@@ -1,4 +1,5 @@
-"""Evaluation curves of run directories side by side, as a markdown table (the README's results tables).
+"""Evaluation curves of run directories side by side, as a markdown table
+(docs/experiments.md, "Other tools").
 
     python -m experiments.compare_runs runs/point_umaze/morefree/seed0 runs/point_umaze/rf_peg/seed0
 

@@ -1,4 +1,5 @@
-"""experiments.compare_runs: the README's side-by-side evaluation tables from metrics.jsonl files."""
+"""experiments.compare_runs: the side-by-side evaluation tables from metrics.jsonl files
+(docs/experiments.md, "Other tools")."""
 
 from __future__ import annotations
 

@@ -4,8 +4,8 @@ PointUMaze with MoReFree at the `cpu` preset, seed 0: the goal-conditioned polic
 from the start state on the task's goal, must reach the goal (PEG's success: within 0.6 at any step) in
 at least half of the 10 evaluation episodes at some evaluation within 20,000 env steps.
 
-Why this level (README "Results so far", issue 15's runs: 3 seeds each of morefree and rf_peg, commit
-0ee41fe, each group on one core): every one of the six seeds met it by 20,000 steps. morefree's seeds
+Why this level (docs/testing.md, "The slow suite"; issue 15's runs: 3 seeds each of morefree and rf_peg,
+commit 0ee41fe, each group on one core): every one of the six seeds met it by 20,000 steps. morefree's seeds
 first reached 0.7, 1.0 and 0.7 at 12,500, 12,500 and 20,000 steps; rf_peg's 0.7, 0.7 and 0.6 at 12,500,
 15,000 and 12,500. Success at single evaluations swings between 0 and 1 in these runs (seed 0: 0.7 at
 12,500, then 0.0 at 15,000), so the check takes the best evaluation, not the last. The margin: seed 0

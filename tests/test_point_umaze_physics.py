@@ -84,8 +84,8 @@ def manual_rule(faces: np.ndarray, old_xy: np.ndarray, new_xy: np.ndarray) -> np
 
 
 def reference_step(model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> bool:
-    """One step of the original (envs.md PointUMaze), in place: turn (wrap once) and move in qpos, clip
-    qvel, set_state (mj_forward), one mj_step, the manual rule from the old xy, set_xy (mj_forward).
+    """One step of the original (docs/tasks.md, "PointUMaze"), in place: turn (wrap once) and move in qpos,
+    clip qvel, set_state (mj_forward), one mj_step, the manual rule from the old xy, set_xy (mj_forward).
     Returns whether a wall block touched the point when the physics step began."""
     action = np.clip(action, -1.0, 1.0)
     old_xy = data.qpos[:2].copy()

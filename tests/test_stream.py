@@ -110,7 +110,7 @@ def test_rnd_reward_is_high_on_novel_states_and_in_unit_range():
     reward = rewards.rnd_reward(cfg, state, jnp.concatenate([seen[:16], novel[:16]]))
     assert float(reward.min()) == 0.0 and float(reward.max()) == pytest.approx(1.0)
     # DI-engine's networks end in a ReLU, so features at zero for both networks carry no novelty and the
-    # contrast is far smaller than without it (README, R3L's choices: measured over init keys).
+    # contrast is far smaller than without it (docs/baselines.md, "R3L's choices": measured over init keys).
     assert float(reward[16:].mean()) > 2 * float(reward[:16].mean())
 
 

@@ -83,7 +83,8 @@ def test_bad_input_is_a_one_line_error_naming_what_is_valid(arguments, message):
 
 
 @pytest.mark.parametrize("task, expected", [
-    # PEG ant maze (agent.md 8.1): entropy 1e-5, discount and P2E discount 0.996, negatives 0.1.
+    # PEG ant maze (docs/tasks.md, "Per-task defaults"): entropy 1e-5, discount and P2E discount 0.996,
+    # negatives 0.1.
     ("ant", dict(entropy=1e-5, discount=0.996, p2e_discount=0.996, neg_factor=0.1, subgoal=2.0,
                  steps=800_000, train_every=2, prefill=2_500)),
     # The Fetch family takes PEG's 3-block stacking: entropy 1e-5, negatives 0.1, discounts 0.99.

@@ -6,7 +6,7 @@ JSON it prints (experiments/benchmarks/model_free.py, TORCH_PYTHON=/path/to/venv
     python3 -m venv /tmp/torchvenv && /tmp/torchvenv/bin/pip install torch
     /tmp/torchvenv/bin/python experiments/benchmarks/torch_sac_reference.py obs=12 action=2
 
-The networks and the update are MEDAL's SACAgent (reference/baselines.md section 2, as in
+The networks and the update are MEDAL's SACAgent (docs/baselines.md, "The SAC learner", as in
 morefree_jax/baselines/sac/learner.py): actor trunk Linear-LayerNorm-tanh (50) then 2 x 256 ReLU, critic trunk
 then twin 2 x 256 heads, batch 256; per update: critic, actor, temperature, Polyak target. The batch is
 fixed (no replay sampling, no env step): this times the update alone, as the bench bar states.

@@ -97,7 +97,7 @@ def acting_state(state: AgentState) -> AgentState:
 
     `act` gives the same result on it. A jitted call flattens its arguments on every dispatch, so a
     Python-side acting loop should pass this rather than the whole state with its optimiser moments (about
-    an eighth of the leaves; the README gives the counts).
+    an eighth of the leaves; docs/learner.md, "Using the agent directly", gives the counts).
     """
     def params_only(net: NetState) -> NetState:
         return NetState(net.params, None)

@@ -157,7 +157,8 @@ def _policy_fns(agent, cfg: CollectConfig, agent_state):
     def distance_fn(stream: StreamState, latent, next_obs):
         if not cfg.explore:  # no switch to check for
             return jnp.asarray(jnp.inf, jnp.float32)
-        # PEG checks the distance of the observation the step led to (agent.md 5.1), go phase only.
+        # PEG checks the distance of the observation the step led to, go phase only (docs/learner.md,
+        # "Go-Explore and Back-and-Forth Go-Explore").
         return lazy_cond(stream.go_active,
                             lambda: agent.goal_distance(agent_state, latent, stream.goal, next_obs),
                             lambda: jnp.asarray(jnp.inf, jnp.float32))
@@ -188,7 +189,8 @@ def prefill_stream(env, agent, cfg: CollectConfig, stream: StreamState, key: jax
 def peg_goal_scores(agent, agent_state, start_latent, candidates: jax.Array, planner_cfg: PlannerConfig,
                     key: jax.Array) -> jax.Array:
     """PEG's fitness of candidate goals (G, O) -> (G,): imagine the goal-conditioned policy from the start
-    latent for `horizon` steps, then sum the exploration value (agent.md 4.2.4).
+    latent for `horizon` steps, then sum the exploration value (docs/learner.md, "Goal search (planner)",
+    step 4).
 
     When only the last k returns count (`use_last_steps`), only the last k + 1 imagined states enter them
     (a lambda-return looks forward only), so the disagreement ensemble and the critic run on those states
@@ -215,7 +217,8 @@ def choose_goal(env, agent, planner_cfg: PlannerConfig, schedule_cfg: ScheduleCo
         goal, schedule = commit_goal(schedule_cfg, schedule, choice, eval_goal, initial_goal, eval_goal)
         return goal, choice, schedule, planner, _schedule_metrics(choice, schedule)
     low, high = goal_bounds
-    # PEG starts its search from the posterior of the current observation (agent.md 4.2.1).
+    # PEG starts its search from the posterior of the current observation (docs/learner.md,
+    # "Goal search (planner)", step 1).
     _, start_latent = agent.act(agent_state, stream.latent, stream.prev_action, stream.env_state.obs,
                                 stream.goal, key_filter, MODE_EXPLORE)
     current = planner_cfg.init_mean == "current"

@@ -58,7 +58,7 @@ class RunConfig:
     on GPU/TPU); it may change on resume.
     codegen: how XLA compiles a run's programs: "optimized" (XLA's default) or "fast", XLA's backend
     optimisation level 0 for every program (LLVM unoptimised): they compile in about half the time, run
-    more slowly (MJX physics many times slower) and round differently (README, Training and evaluation).
+    more slowly (MJX physics many times slower) and round differently (docs/training.md, "Codegen").
     For short debug runs and the tests; it may not change on resume (the numbers do).
     """
 

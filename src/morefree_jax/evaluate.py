@@ -4,9 +4,9 @@
     metrics = evaluation_metrics(result)
     views = visitation(env, replay, bins=50)   # {"task_relevant", "xy"} (+ {"in_air", "xz"}: side view)
 
-Evaluation follows PEG (agent.md 7.1): every episode starts from a fresh reset (the task's initial-state
-distribution) with a goal from the task's `evaluation_goals` (independent eval_goals draws, or the task's
-order); the goal-conditioned policy acts deterministically (its mode), the latent is filtered from
+Evaluation follows PEG (docs/training.md, "Evaluation"): every episode starts from a fresh reset (the task's
+initial-state distribution) with a goal from the task's `evaluation_goals` (independent eval_goals draws, or
+the task's order); the goal-conditioned policy acts deterministically (its mode), the latent is filtered from
 is_first; success is the task's `success` at ANY step of the episode (PEG's max over the episode), and we
 also report success at the last step and the final distance to the goal.
 Episodes are vmapped; the env steps run inside one lax.scan.

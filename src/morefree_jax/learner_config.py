@@ -1,10 +1,11 @@
 """Frozen configuration dataclasses of the learning core and the presets "paper", "cpu", "debug".
 
-`paper` holds the PEG values for state-based tasks (reference/agent.md sections 1-3, 5.3). `cpu` keeps the
-architecture and scales widths, batch, ensemble size and imagination starts so that one train step of all
-five learners fits in ~100 ms on a 2-core CPU (numbers in experiments/benchmarks/core.py and the README).
-`debug` is tiny, for tests. Presets overlay the defaults with `dataclasses.replace`; the run-level configs
-(planner, training loop) live in config.py.
+`paper` holds the PEG values for state-based tasks (docs/learner.md, "Presets"; the values in its sections
+"World model (RSSM)", "Goal-conditioned actor-critic", "Temporal distance", "Plan2Explore" and "Replay").
+`cpu` keeps the architecture and scales widths, batch, ensemble size and imagination starts so that one train
+step of all five learners fits in ~100 ms on a 2-core CPU (numbers in experiments/benchmarks/core.py and
+docs/performance.md, "Learning core"). `debug` is tiny, for tests. Presets overlay the defaults with
+`dataclasses.replace`; the run-level configs (planner, training loop) live in config.py.
 """
 
 from __future__ import annotations
@@ -156,11 +157,11 @@ def _paper() -> AgentConfig:
 
 
 def _cpu() -> AgentConfig:
-    # Chosen by measurement (experiments/benchmarks/core.py, README): the paper's structure (layer counts,
-    # horizon, heads, losses) with every width 128 (stoch 32), batch 16 x 50, 64 imagination starts
-    # (random subset of the 800 posteriors) and 4 ensemble members; imagination scans fully unrolled.
-    # The imagination parts scale with the starts: 64 -> ~80 ms per train step, 96 -> ~100, 128 -> ~140
-    # on the idle 2-core machine, so 64 keeps the step inside the 100 ms budget with a margin.
+    # Chosen by measurement (experiments/benchmarks/core.py; docs/performance.md, "Learning core"): the
+    # paper's structure (layer counts, horizon, heads, losses) with every width 128 (stoch 32), batch 16 x 50,
+    # 64 imagination starts (random subset of the 800 posteriors) and 4 ensemble members; imagination scans
+    # fully unrolled. The imagination parts scale with the starts: 64 -> ~80 ms per train step, 96 -> ~100,
+    # 128 -> ~140 on the idle 2-core machine, so 64 keeps the step inside the 100 ms budget with a margin.
     width = (128, 128, 128)
     wm = WorldModelConfig(deter=128, hidden=128, stoch=32, encoder_layers=width, decoder_layers=width,
                           embed_head_layers=width)

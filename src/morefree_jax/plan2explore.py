@@ -7,9 +7,9 @@ the mean Normal(., 1) NLL (constant dropped); inputs and targets are stop-gradie
 the std over members of the predicted means, averaged over the stoch dimensions.
 
 The paper's appendix describes Plan2Explore as published: the variance over members of f(s_t), without the
-action. The std and the action input are PEG's code (agent.md section 3), which the paper says MoReFree
-extends with every other hyperparameter kept; where its prose summarises earlier methods we follow the code
-it ran, and the README's "Where this differs" table says so.
+action. The std and the action input are PEG's code (docs/learner.md, "Plan2Explore"), which the paper says
+MoReFree extends with every other hyperparameter kept; where its prose summarises earlier methods we follow
+the code it ran, and docs/fidelity.md, "Learner and schedule", says so.
 """
 
 from __future__ import annotations

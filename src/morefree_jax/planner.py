@@ -3,7 +3,8 @@
 The planner is generic: it never sees a network. The caller supplies
 `score_fn(candidates (G, D), key) -> (G,)`; for PEG that is "encode each candidate goal, roll out the
 goal-conditioned policy in the world model from the current latent, sum the exploration value"
-(agent.md 4.2), and `peg_score` turns the imagined exploration rewards / lambda-returns into that sum.
+(docs/learner.md, "Goal search (planner)"), and `peg_score` turns the imagined exploration rewards /
+lambda-returns into that sum.
 
     state = start_search(config, init_mean)                        # N(init_mean, init_std)
     goal, state, metrics = plan_goal(score_fn, state, low, high, key, config)
@@ -39,7 +40,8 @@ class PlannerConfig:
     """Goal-search settings. Defaults are PEG's shared values [PEG:dreamerv2/configs.yaml planner].
 
     init_mean: where each re-optimisation centres its first Gaussian: "current" = the current observation,
-      "initial_state" = a sample of the task's initial states (PEG's fixed init candidate, agent.md 4.2.2).
+      "initial_state" = a sample of the task's initial states (PEG's fixed init candidate, docs/learner.md,
+      "Goal search (planner)", step 2).
     use_last_steps: sum only the last N imagined steps of the score (PEG `final_step_cost` -> 10), None = all.
     min_std: floor on the refitted std; PEG has none for MPPI and sqrt(var + 1e-6) for CEM (0 keeps that).
     clip_final_goal: PEG returns an unclipped final sample; we clip it to the bounds by default, since a goal
@@ -92,7 +94,8 @@ class PlannerState:
 
 
 def start_search(config: PlannerConfig, init_mean: jax.Array) -> PlannerState:
-    """The Gaussian a re-optimisation starts from: N(init_mean, init_std) in every dim (agent.md 4.2.2)."""
+    """The Gaussian a re-optimisation starts from: N(init_mean, init_std) in every dim
+    (docs/learner.md, "Goal search (planner)", step 2)."""
     init_mean = jnp.asarray(init_mean, jnp.float32)
     return PlannerState(mean=init_mean, std=jnp.full_like(init_mean, config.init_std),
                         score=jnp.zeros((), jnp.float32), searches=jnp.zeros((), jnp.int32))
@@ -167,14 +170,15 @@ def plan_goal(
 def peg_score(
     explore_reward: jax.Array, explore_returns: jax.Array, use_last_steps: int | None, use_value: bool = True
 ) -> jax.Array:
-    """PEG's fitness of each candidate goal from its imagined rollout (agent.md 4.2.4), time-major.
+    """PEG's fitness of each candidate goal from its imagined rollout, time-major (docs/learner.md,
+    "Goal search (planner)", step 4).
 
     explore_reward (H, G): Plan2Explore disagreement at each imagined state.
     explore_returns (H', G): TD(lambda) returns of those rewards bootstrapped with the explore target critic.
     Sums the returns (PEG `cost_use_p2e_value: True`) or, with use_value=False, the rewards, over the last
     `use_last_steps` steps (PEG `final_step_cost`), or over all steps when None. Returns (G,).
     The paper's appendix describes the score as the exploration value of the rollout's last state; this is
-    PEG's code, which MoReFree extends (README, "Where this differs").
+    PEG's code, which MoReFree extends (docs/fidelity.md, "Learner and schedule").
     """
     values = explore_returns if use_value else explore_reward
     if use_last_steps is not None:

@@ -108,7 +108,8 @@ def keep_if_finite(new_state, old_state):
                              if jnp.issubdtype(x.dtype, jnp.inexact)])
     # all() as the flag at argmin (False wherever one is): XLA turns jnp.all of stacked scalars into a chain
     # of ands and copies that chain into every leaf's select (leaves^2 ops, which made the train program's
-    # compile several times longer, seed vmap included: README, Tests); an argmin stays one reduction.
+    # compile several times longer, seed vmap included: docs/performance.md, "Compile time"); an argmin stays
+    # one reduction.
     finite = leaf_finite[jnp.argmin(leaf_finite)]
     return jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, old_state), finite
 

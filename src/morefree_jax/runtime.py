@@ -14,7 +14,7 @@ experiments/benchmarks/core.py on the 2-core dev machine):
   On every CPU, `--xla_cpu_copy_insertion_use_region_analysis=true`: XLA's copy insertion then sees that a
   buffer carried through a loop can be updated in place where its default analysis copies it. The
   model-free chunk stores into and samples from its replay in every step of one scan, and by default
-  XLA copied a replay field twice per step (README "Benchmarks", model-free section, for the gain). Only
+  XLA copied a replay field twice per step (docs/performance.md, "The speed bar", for the gain). Only
   copies go: the numbers stay bit for bit the same.
 - `large`, for paper-size learners on CPU (`make train PRESET=paper`, the core benchmark's paper row):
   `standard` plus two changes that only pay off when one update moves gigabytes.

@@ -1,8 +1,8 @@
 """Settings of the model-free baselines (`Config.baseline`, CLI keys `baseline.*`), with their sources.
 
-The SAC learner's values are MEDAL's (reference/baselines.md section 2). R3L's classifier and RND values
-are the templates baselines.md section 5 names (MEDAL's discriminator, DI-engine's RND), since MoReFree does
-not state its own; where we had to choose, the field's comment says what and why. Importing it starts no
+The SAC learner's values are MEDAL's (docs/baselines.md, "The SAC learner"). R3L's classifier and RND
+values are templates (MEDAL's discriminator, DI-engine's RND; docs/baselines.md, "R3L"), since MoReFree
+does not state its own; where we had to choose, the field's comment says what and why. Importing it starts no
 JAX backend (config.py imports it before the CLIs configure the runtime).
 """
 
@@ -16,8 +16,9 @@ ALPHA_UPDATES = ("adam", "clipped_step")
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
-    """baselines.md section 2 (MEDAL `cfgs/oracle.yaml`, `agents.py`); the defaults are MEDAL's. The
-    options below them exist for IBC's variant (section 4.1, `IBCConfig.sac` sets them):
+    """docs/baselines.md, "The SAC learner" (MEDAL `cfgs/oracle.yaml`, `agents.py`); the defaults are MEDAL's.
+    The options below them exist for IBC's variant (docs/baselines.md, "Learner" under "IBC"; `IBCConfig.sac`
+    sets them):
     hidden_depth: ReLU layers per head; weight_init: xavier (uniform) or orthogonal, zero biases;
     log_std_squash: tanh then affine into [log_std_min, log_std_max] instead of a hard clip;
     critic_loss_weight: 0.5 (MEDAL) or 1 (IBC: MSE1 + MSE2); alpha_update: Adam on log alpha (MEDAL) or
@@ -71,7 +72,7 @@ class SACConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ClassifierConfig:
-    """R3L's VICE-style goal classifier, on MEDAL's discriminator template (baselines.md sections 3, 5):
+    """R3L's VICE-style goal classifier, on MEDAL's discriminator template (docs/baselines.md, "R3L"):
     one hidden layer of 128 ReLU, BCE with mixup, 400 goal examples + 400 visited states per batch, Adam
     3e-4, one update every 10 env steps; reward -log(1 - sigmoid(D(s')) + eps)."""
 
@@ -93,7 +94,7 @@ class ClassifierConfig:
 @dataclasses.dataclass(frozen=True)
 class RNDConfig:
     """R3L's backward (exploration) reward: random network distillation with DI-engine's settings
-    (baselines.md section 5): target and predictor MLPs [64, 64, 128], predictor Adam 1e-3, batch 64,
+    (docs/baselines.md, "R3L"): target and predictor MLPs [64, 64, 128], predictor Adam 1e-3, batch 64,
     running mean/std whitening of observations, reward = per-sample squared error min-max normalised to
     [0, 1] within the batch ('assign' mode: the backward policy sees no other reward).
 
@@ -116,10 +117,10 @@ class RNDConfig:
 
 
 def _ibc_sac() -> SACConfig:
-    """baselines.md 4.1 (IBC `ibc.py`, `config_default.yaml`): 3 x 512 heads, orthogonal init, log-std
-    tanh-squashed into [-10, 2], lr 1e-4, batch 512 (the forward agent takes half: IBCConfig), alpha0 0.5
-    with the clipped plain step, target entropy -|A|, actor and alpha every 2 updates, target every 2 with
-    tau 0.01, loss MSE1 + MSE2, reward in {-1, 0} unscaled."""
+    """docs/baselines.md, "Learner" under "IBC" (IBC `ibc.py`, `config_default.yaml`): 3 x 512 heads,
+    orthogonal init, log-std tanh-squashed into [-10, 2], lr 1e-4, batch 512 (the forward agent takes half:
+    IBCConfig), alpha0 0.5 with the clipped plain step, target entropy -|A|, actor and alpha every 2 updates,
+    target every 2 with tau 0.01, loss MSE1 + MSE2, reward in {-1, 0} unscaled."""
     return SACConfig(hidden_dim=512, hidden_depth=3, weight_init="orthogonal", log_std_squash=True,
                      log_std_min=-10.0, log_std_max=2.0, lr=1e-4, batch_size=512, init_temperature=0.5,
                      alpha_update="clipped_step", target_entropy_per_dim=-1.0, actor_update_every=2,
@@ -128,7 +129,7 @@ def _ibc_sac() -> SACConfig:
 
 @dataclasses.dataclass(frozen=True)
 class IBCConfig:
-    """IBC (baselines.md section 4; its per-task values live in baselines/ibc/tasks.py).
+    """IBC (docs/baselines.md, "IBC"; its per-task values live in baselines/ibc/tasks.py).
     random_steps: uniform random actions first (`num_random_steps` 400); the seed phase without updates
     is run.prefill, which the ibc agent sets to `num_seed_steps` 800 (variants.py). her_relabel: share of
     each batch relabelled with a future achieved goal (`n_sampled_goal` 4 -> 4/5). pool_size: FIFO of
@@ -173,8 +174,8 @@ class IBCConfig:
 @dataclasses.dataclass(frozen=True)
 class ModelFreeConfig:
     """classifier: R3L's goal classifier. discriminator: MEDAL's backward reward, a classifier of
-    demonstration states against backward states; its defaults are MEDAL's (medal.yaml, baselines.md
-    section 3), the same values R3L's classifier takes as its template.
+    demonstration states against backward states; its defaults are MEDAL's (medal.yaml;
+    docs/baselines.md, "MEDAL"), the same values R3L's classifier takes as its template.
     chunk_len: env steps per compiled call (each step acts, steps the env, stores and updates once).
     replay_capacity: transitions kept per buffer (MEDAL keeps 5e6; our runs are shorter, and 1e6 of
     PointUMaze transitions is ~110 MB per buffer). switch_every: R3L's forward/backward segment length

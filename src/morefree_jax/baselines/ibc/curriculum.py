@@ -1,4 +1,4 @@
-"""IBC's bidirectional goal curriculum (reference/baselines.md 4.4; HGG's trajectory pool and matching).
+"""IBC's bidirectional goal curriculum (docs/baselines.md, "Curriculum"; HGG's trajectory pool and matching).
 
     curriculum = Curriculum(env, task, config.baseline.ibc, discount)
     state = curriculum.init(key)
@@ -23,7 +23,8 @@ The valuation and costs are compiled (a lax.map over the pool, in the scan); the
 scipy's linear_sum_assignment through jax.pure_callback (IBC's min-cost flow solves the same problem). It
 runs only under a lazy_cond at the matching segments (every `match_every` forward segments, i.e. every
 thousand or more env steps), on a (slots, pool_size) matrix, so the host round trip is rare and the chunk
-stays one fused call; the compiled valuation is nearly all of a matching's cost (README, IBC section).
+stays one fused call; the compiled valuation is nearly all of a matching's cost
+(docs/baselines.md, "Where the matching runs").
 """
 
 from __future__ import annotations
@@ -166,8 +167,8 @@ class Curriculum:
 
     def noisy_initial_states(self, states, key) -> jax.Array:
         """states (N, O) + uniform +- task.init_noise on every entry, clipped to the observation bounds
-        (IBC's add_noise_to_goal on the target pairs' initial goals; baselines.md 4.3 ascribes this noise to
-        the backward goals, which in IBC's curriculum get MatchSampler.add_noise instead: backward_goal)."""
+        (IBC's add_noise_to_goal on the target pairs' initial goals; backward goals get MatchSampler.add_noise
+        instead: backward_goal; docs/baselines.md, "IBC's choices and deviations")."""
         size = self.task.init_noise
         noisy = states + jax.random.uniform(key, states.shape, minval=-size, maxval=size)
         return self.clip_to_bounds(noisy, jnp.arange(states.shape[-1]))
@@ -179,9 +180,9 @@ class Curriculum:
                 jax.vmap(self.env.eval_goals)(jax.random.split(key_goal, count)))
 
     def target_pairs(self, key) -> tuple[jax.Array, jax.Array]:
-        """K target pairs (baselines.md 4.4): env draws; in the EARL tasks the first desired goal is the
-        initial state itself (IBC's {initial, goal states}); on PointUMaze the desired goals are draws of
-        IBC's 30 corridor points with uniform noise (ibc_tasks.corridor_points)."""
+        """K target pairs (docs/baselines.md, "Curriculum"): env draws; in the EARL tasks the first desired
+        goal is the initial state itself (IBC's {initial, goal states}); on PointUMaze the desired goals are
+        draws of IBC's 30 corridor points with uniform noise (ibc_tasks.corridor_points)."""
         key_pairs, key_point, key_noise = jax.random.split(key, 3)
         init, goal = self.reset_pairs(key_pairs, self.task.num_targets)
         if self.task.earl:
@@ -262,8 +263,8 @@ class Curriculum:
             state.pool_first[:, self.proprio_dims], valid, values,
             state.target_goal[target][:, self.goal_dims], slot_init[:, self.proprio_dims], state.max_dis,
             self.discount, self.config.cost_c, self.config.cost_l)
-        # baselines.md 4.4 does not mention it: IBC pads the pool before matching, so without padding a
-        # young pool would leave most slots on the task goals.
+        # IBC's TrajectoryPool.pad pads the pool before matching (docs/baselines.md, "Curriculum"), so
+        # without padding a young pool would leave most slots on the task goals.
         rows = padded_rows(state.pool_count, self.config.pool_size)
         column = assign_on_host(cost[:, rows])
         row = rows[column]
@@ -300,9 +301,9 @@ class Curriculum:
         the observation bounds, drawn up to goal_draws times until obs does not already reach it; the last
         draw stands even if reached (IBC's train.py, forward -> backward: no task-goal fallback).
 
-        baselines.md 4.4 pairs the backward goal with the preceding forward goal's slot; IBC's train.py
-        draws a new uniform slot, and its noise is MatchSampler.add_noise(proprioceptive_only=True)
-        (Gaussian, the forward std), not baselines.md 4.3's uniform add_noise_to_goal."""
+        In IBC's train.py each backward goal draws its own uniform slot, and its noise is
+        MatchSampler.add_noise(proprioceptive_only=True) (Gaussian, the forward std), not the uniform
+        add_noise_to_goal (docs/baselines.md, "IBC's choices and deviations")."""
         keys = jax.random.split(key, 2 * self.config.goal_draws)
         dims = jnp.asarray(self.task.backward_noise_dims)
         goal = None

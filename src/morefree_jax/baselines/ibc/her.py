@@ -1,4 +1,5 @@
-"""IBC's hindsight replay (reference/baselines.md 4.2) as a device ring of transitions grouped in segments.
+"""IBC's hindsight replay (docs/baselines.md, "Hindsight relabelling") as a device ring of transitions grouped
+in segments.
 
     buffer = init_segment_buffer(capacity, obs_size, action_size)
     buffer = insert_where(buffer, obs, goal, action, next_obs, flag)   # one step of a segment, in a scan

@@ -1,5 +1,5 @@
-"""IBC's learners (reference/baselines.md 4.1-4.2): a forward and a backward goal-conditioned SAC, each on
-its own hindsight replay, updated once per env step only while acting.
+"""IBC's learners (docs/baselines.md, "Learner" and "Hindsight relabelling" under "IBC"): a forward and a
+backward goal-conditioned SAC, each on its own hindsight replay, updated once per env step only while acting.
 
     learner = IBCLearner(config.baseline.ibc, env, ibc_task(env))
     state = learner.init(key)
@@ -84,8 +84,8 @@ class IBCLearner:
 
     def batch_size(self, direction: int) -> int:
         """Transitions per update of the direction's agent. IBC's ForwardBackwardReplayBufferWrapper.sample
-        hands the forward agent int(rl_batch_size / 2) and the backward agent all of it (baselines.md 4.1
-        lists 512 for both; the source halves the forward one)."""
+        hands the forward agent int(rl_batch_size / 2) and the backward agent all of it
+        (docs/baselines.md, "Learner" under "IBC", batch row)."""
         full = self.config.sac.batch_size
         return full // 2 if direction == FORWARD else full
 

@@ -1,5 +1,5 @@
 """The ibc agent's run functions (RunFns contract, morefree_jax.run): IBC's reset-free stream of
-forward and backward segments (reference/baselines.md 4.3) with its learners (learner.py), hindsight replay
+forward and backward segments (docs/baselines.md, "Segments") with its learners (learner.py), hindsight replay
 (her.py) and curriculum (curriculum.py), all in one fused scan per chunk.
 
     fns = make_ibc_fns(config, env)

@@ -1,4 +1,5 @@
-"""IBC's per-task settings (reference/baselines.md sections 4.3-4.5 and 7), keyed by our task names.
+"""IBC's per-task settings (docs/baselines.md, "IBC": its "Segments" and "Curriculum" sections), keyed by our
+task names.
 
 IBC keeps these in dicts keyed by task in its `train.py` and `env_utils.py`; we keep them together here,
 in the ibc agent's own file, rather than in each task's `default_config()`, so that they sit beside the
@@ -9,7 +10,8 @@ point_umaze (x, y, heading, velocities): xy [0:2]; tabletop (gripper xy, mug xy,
 [0:2]; sawyer_door (hand xyz, gripper opening, handle xyz): hand [0:3]; fetch (grip xyz, block xyz, ...):
 grip [0:3]; ant (qpos, qvel): torso xy [0:2].
 
-push_hard / pick_place_hard use IBC's Fetch settings (baselines.md 7: "unchanged IBC defaults").
+push_hard / pick_place_hard use IBC's Fetch settings (docs/baselines.md, "IBC's choices and deviations";
+the paper, Appendix B.2, keeps IBC's hyperparameters unchanged).
 ant is not in IBC's code; our choices: the proprioceptive goal is the torso xy (the ant's goal space, as
 UMaze's point xy), backward threshold = the task's success threshold (1.0), noises scaled from UMaze's
 (uniform +-0.1 on target initial states, Gaussian 0.3 on curriculum goals of both directions, on the

@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-# task -> {direction: episodes}; MEDAL's counts (reference/baselines.md section 7).
+# task -> {direction: episodes}; MEDAL's counts (docs/baselines.md, "Demonstrations").
 DEMO_COUNTS: dict[str, dict[str, int]] = {
     "point_umaze": {"forward": 30},
     "tabletop": {"forward": 12, "reverse": 12},

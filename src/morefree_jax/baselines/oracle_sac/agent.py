@@ -37,9 +37,9 @@ class OracleSAC:
     demo_rows = (0,)  # leading rows per buffer that hold demonstrations
 
     def fill_buffers(self, buffers, key):
-        # No demonstrations. baselines.md section 2 says MEDAL's oracle.py loads the forward demos when a
-        # task has them; the paper says only MEDAL uses demonstrations ("MEDAL also uses demonstrations
-        # and Oracle uses resets"), and the paper wins.
+        # No demonstrations. MEDAL's oracle.py loads the forward demos when a task has them
+        # (docs/baselines.md, "Oracle SAC"); the paper says only MEDAL uses demonstrations ("MEDAL also uses
+        # demonstrations and Oracle uses resets"), and the paper wins.
         return buffers
 
     def backward_goal(self, key):  # never acts backward (episodic); the stream asks for one regardless

@@ -1,4 +1,4 @@
-"""MEDAL's SAC learner (reference/baselines.md section 2) as pure functions, for the model-free baselines.
+"""MEDAL's SAC learner (docs/baselines.md, "The SAC learner") as pure functions, for the model-free baselines.
 
     config = SACConfig()
     state = init(config, obs_size, action_size, key)

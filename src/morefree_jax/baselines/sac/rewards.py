@@ -1,5 +1,6 @@
-"""R3L's learned rewards as pure functions: the VICE-style goal classifier (forward policy) and random
-network distillation (backward exploration policy). Settings and sources: baselines/baseline_config.py.
+"""Learned rewards as pure functions: the VICE-style goal classifier (R3L's forward reward, MEDAL's
+discriminator) and random network distillation (R3L's backward exploration reward).
+Settings and sources: baselines/baseline_config.py.
 
     classifier = init_classifier(cfg, obs_size, key)
     classifier, loss = update_classifier(cfg, classifier, goal_examples, visited, key)

@@ -167,7 +167,7 @@ class StreamParts:
         MEDAL's order (oracle.py, medal.py): draw the action, update on the replay as it stands, step the
         env, store the transition. The store is carried to the start of the next step (`_Pending`): the
         update and the env step then share no buffer, so XLA does not copy the whole replay to run them
-        side by side, as it did with the store in the same step (README, "Order within a step").
+        side by side, as it did with the store in the same step (docs/baselines.md, "Order within a step").
         An agent's first update therefore needs a filled replay: the seed phase (run.prefill) or MEDAL's
         demonstrations provide it, as MEDAL's seed frames do."""
         agent, buffers, stream, pending = carry
