@@ -1,7 +1,7 @@
 """Evaluation curves of run directories side by side, as a markdown table
 (docs/experiments.md, "Other tools").
 
-    python -m experiments.compare_runs runs/point_umaze/morefree/seed0 runs/point_umaze/rf_peg/seed0
+    python -m experiments.compare_runs runs=runs/point_umaze/morefree/seed0,runs/point_umaze/rf_peg/seed0
 
 One row per evaluation step that every run has reached; per run: success (any step) / final success /
 final distance / task-relevant share of the replay / wall-clock minutes since the run started. A directory
@@ -13,6 +13,7 @@ from __future__ import annotations
 import pathlib
 import sys
 
+from experiments.cli import REQUIRED, KeyValueError, parse_keys
 from morefree_jax.logger import read_metrics
 
 COLUMNS = ("eval/success", "eval/final_success", "eval/final_distance", "visitation/task_relevant")
@@ -45,12 +46,13 @@ def markdown_table(run_dirs: list[str]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    if not argv or any(arg in ("-h", "--help") for arg in argv):
+    if any(arg in ("-h", "--help") for arg in argv):
         print(__doc__)
-        return 0 if argv else 2
+        return 0
     try:
-        print(markdown_table(argv))
-    except FileNotFoundError as error:
+        run_dirs = [d for d in parse_keys(argv, {"runs": REQUIRED})["runs"].split(",") if d]
+        print(markdown_table(run_dirs))
+    except (KeyValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     return 0

@@ -3,9 +3,8 @@
     python -m experiments.train env=point_umaze agent=morefree preset=cpu seed=0 steps=200000 [key=value ...]
     python -m experiments.train env=point_umaze seeds=0,1,2     # three seeds in one program, a run dir each
 
-Keys: env, agent (a world-model variant: morefree, rf_peg, peg, dreamer_gc, mf_no_bfge, mf_no_imag,
-mf_task_only; or a model-free baseline: oracle_sac, r3l, medal, ibc), preset (paper, cpu, debug),
-seed, steps; any dotted config key (wm.deter=64, planner.iterations=3, schedule.alpha=0.3,
+Keys: env, agent (one of the registry's, listed below), preset (paper, cpu, debug), seed, steps; any
+dotted config key (wm.deter=64, planner.iterations=3, schedule.alpha=0.3,
 run.eval_every=5000, or run keys without "run.": eval_every=5000). The run dir is
 runs/<env>/<agent>/seed<seed> unless run_dir=... is given (with seeds=: <run_dir>/seed<k>). Bad input exits
 with code 2 and one line.
@@ -57,9 +56,19 @@ def split_seeds(argv: list[str]) -> tuple[tuple[int, ...] | None, list[str]]:
     return parse_seeds(given[0].partition("=")[2]), [arg for arg in argv if arg not in given]
 
 
+def agents_help() -> str:
+    """One line per agent of the registry: name, description and the config sections it reads."""
+    from morefree_jax.registry import AGENTS
+
+    width = max(map(len, AGENTS))
+    rows = [f"  {name:<{width}}  {entry.description} [{', '.join(entry.config_sections)}]"
+            for name, entry in AGENTS.items()]
+    return "Agents:\n" + "\n".join(rows)
+
+
 def main(argv: list[str]) -> int:
     if any(arg in ("-h", "--help") for arg in argv):
-        print(__doc__)
+        print(__doc__ + "\n" + agents_help())
         return 0
     # Before any JAX computation (XLA flags, allocator settings); paper-size learners use the `large` mode
     # unless MOREFREE_JAX_RUNTIME says otherwise (see morefree_jax.runtime).

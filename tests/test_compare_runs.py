@@ -21,12 +21,12 @@ def write_run(path, evaluations):
 def test_table_lists_the_steps_every_run_reached(tmp_path, capsys):
     write_run(tmp_path / "a", [(1000, 0.0), (2000, 0.5), (3000, 1.0)])
     write_run(tmp_path / "b", [(1000, 0.2), (2000, 0.4)])
-    assert compare_runs.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert compare_runs.main([f"runs={tmp_path / 'a'},{tmp_path / 'b'}"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 4  # header, rule, steps 1,000 and 2,000
     assert lines[3] == "| 2,000 | 0.5 / 0.2 / 1.25 / 0.030 / 2 min | 0.4 / 0.2 / 1.25 / 0.030 / 2 min |"
 
 
 def test_missing_run_is_one_line_error(tmp_path, capsys):
-    assert compare_runs.main([str(tmp_path / "nothing")]) == 2
+    assert compare_runs.main([f"runs={tmp_path / 'nothing'}"]) == 2
     assert capsys.readouterr().err.count("\n") == 1

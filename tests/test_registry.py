@@ -103,3 +103,11 @@ def test_the_core_names_no_baseline():
                  for path in _modules().values() if not path.is_relative_to(allowed[0]) and path != allowed[1]
                  for number, line in enumerate(path.read_text().splitlines(), 1) if quoted.search(line)]
     assert offenders == []
+
+
+def test_train_help_lists_every_agent_of_the_registry(capsys):
+    from experiments import train as train_cli
+
+    assert train_cli.main(["--help"]) == 0
+    listed = capsys.readouterr().out.split("Agents:\n")[1].splitlines()
+    assert [line.split()[0] for line in listed] == list(registry.AGENTS)
