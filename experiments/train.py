@@ -66,6 +66,17 @@ def agents_help() -> str:
     return "Agents:\n" + "\n".join(rows)
 
 
+def _learner_precision(config, seeds) -> str:
+    """agent.precision as given or as recorded in the first run dir: read before JAX starts (XLA flags)."""
+    from morefree_jax.precision import stored_precision
+    from morefree_jax.seeds import seed_configs
+
+    if config.agent.precision != "auto":
+        return config.agent.precision
+    first = seed_configs(config, seeds or (config.run.seed,))[0]
+    return stored_precision(first.run.resolved_run_dir) or "auto"
+
+
 def main(argv: list[str]) -> int:
     if any(arg in ("-h", "--help") for arg in argv):
         print(__doc__ + "\n" + agents_help())
@@ -73,11 +84,13 @@ def main(argv: list[str]) -> int:
     # Before any JAX computation (XLA flags, allocator settings); paper-size learners use the `large` mode
     # unless MOREFREE_JAX_RUNTIME says otherwise (see morefree_jax.runtime).
     paper = "preset=paper" in argv and runtime.MODE_VARIABLE not in os.environ
-    runtime.configure("large" if paper else None)
     try:
         seeds, argv = split_seeds(argv)
         config = resolve_config(argv, envs_mjx.ALL_ENVS)
+        runtime.configure("large" if paper else None, _learner_precision(config, seeds))
         from morefree_jax import driver  # imports jax: after the cheap checks
+
+        config = driver.settle_precision(config, seeds or None)
 
         seeds = seeds or (config.run.seed,)
         programs = driver.build_programs(config, len(seeds))

@@ -52,10 +52,12 @@ class Imagined(NamedTuple):
     reward_extras: object  # whatever the reward function returned besides the reward
 
 
-def make_actor_critic(cfg: ActorCriticConfig, action_size: int, use_context: bool) -> ActorCritic:
+def make_actor_critic(cfg: ActorCriticConfig, action_size: int, use_context: bool,
+                      precision: str = "f32") -> ActorCritic:
     return ActorCritic(
-        actor=ContextMLP(cfg.actor_layers, 2 * action_size, use_context, head_fan_out=action_size),
-        critic=ContextMLP(cfg.critic_layers, 1, use_context),
+        actor=ContextMLP(cfg.actor_layers, 2 * action_size, use_context, head_fan_out=action_size,
+                         precision=precision),
+        critic=ContextMLP(cfg.critic_layers, 1, use_context, precision=precision),
         config=cfg,
         actor_opt=make_optimizer(cfg.actor_opt),
         critic_opt=make_optimizer(cfg.critic_opt),

@@ -54,6 +54,7 @@ from morefree_jax.networks import (
     zero_latent,
 )
 from morefree_jax.plan2explore import disagreement, init_ensemble, make_ensemble
+from morefree_jax.precision import resolve_precision
 from morefree_jax.world_model import encode, init_world_model, make_world_model
 
 MODE_GOAL, MODE_EXPLORE = 0, 1  # policy choice (bit 0)
@@ -158,11 +159,15 @@ class Agent(NamedTuple):
 
 
 def make_agent(config: AgentConfig, spec: EnvSpec) -> Agent:
-    m = AgentModules(wm=make_world_model(config.wm, spec.obs_size), wm_opt=make_optimizer(config.wm.opt),
-                     gc=make_actor_critic(config.gc, spec.action_size, use_context=True),
-                     explore_ac=make_actor_critic(config.explore.ac, spec.action_size, use_context=False),
-                     dist=make_distance(config.distance), ens=make_ensemble(config.explore, config.wm.stoch),
-                     config=config, spec=spec)
+    """The agent of `config`; config.precision "auto" becomes this machine's default (precision.py)."""
+    config = dataclasses.replace(config, precision=resolve_precision(config.precision))
+    precision = config.precision
+    m = AgentModules(wm=make_world_model(config.wm, spec.obs_size, precision),
+                     wm_opt=make_optimizer(config.wm.opt),
+                     gc=make_actor_critic(config.gc, spec.action_size, True, precision),
+                     explore_ac=make_actor_critic(config.explore.ac, spec.action_size, False, precision),
+                     dist=make_distance(config.distance, precision),
+                     ens=make_ensemble(config.explore, config.wm.stoch, precision), config=config, spec=spec)
     parts = AgentParts(partial(agent_update.world_model_part, m),
                        partial(agent_update.goal_conditioned_part, m), partial(agent_update.explore_part, m))
     return Agent(partial(init, m), partial(initial_latent, m), partial(goal_context, m), partial(act, m),

@@ -27,8 +27,8 @@ class Distance(NamedTuple):
     optimizer: optax.GradientTransformation
 
 
-def make_distance(cfg: DistanceConfig) -> Distance:
-    return Distance(ContextMLP(cfg.layers, 1), cfg, make_optimizer(cfg.opt))
+def make_distance(cfg: DistanceConfig, precision: str = "f32") -> Distance:
+    return Distance(ContextMLP(cfg.layers, 1, precision=precision), cfg, make_optimizer(cfg.opt))
 
 
 def init_distance(dist: Distance, key: jax.Array, embed_size: int) -> NetState:

@@ -42,6 +42,7 @@ from morefree_jax.compile import (
 )
 from morefree_jax.config import RESUMABLE_KEYS, Config, ConfigError, config_from_dict, config_to_dict
 from morefree_jax.logger import RunLogger
+from morefree_jax.precision import default_precision, stored_precision
 from morefree_jax.registry import make_run_fns
 from morefree_jax.run import RunFns, RunState, compiled_settings
 from morefree_jax.run_lock import RunDirLock
@@ -61,6 +62,20 @@ def eval_keys(seeds: tuple[int, ...], step: int) -> jax.Array:
                       for seed in seeds])
 
 
+def settle_precision(config: Config, seeds=None) -> Config:
+    """config with agent.precision "auto" made concrete: the precision recorded in the group's run dirs (a
+    resume keeps it) or, for new run dirs, this machine's default (precision.py)."""
+    if config.agent.precision != "auto":
+        return config
+    seeds = check_seeds((config.run.seed,) if seeds is None else seeds)
+    stored = {stored_precision(c.run.resolved_run_dir) for c in seed_configs(config, seeds)} - {None}
+    if len(stored) > 1:
+        raise ConfigError(f"the run dirs of this group were made with different precisions {sorted(stored)}; "
+                          "resume them separately")
+    precision = stored.pop() if stored else default_precision()
+    return dataclasses.replace(config, agent=dataclasses.replace(config.agent, precision=precision))
+
+
 def build_programs(config: Config, num_seeds: int = 1) -> Programs:
     """The run functions of `config` compiled for `num_seeds` seeds (sharded over devices when several)."""
     fns = make_run_fns(config, envs_mjx.make(config.run.env))
@@ -75,6 +90,7 @@ def train(config: Config, seeds=None, programs: Programs | None = None,
     compiled settings (run.compiled_settings) and seed count.
     """
     seeds = check_seeds((config.run.seed,) if seeds is None else seeds)
+    config = settle_precision(config, seeds)
     if programs is None:
         programs = build_programs(config, len(seeds))
     elif (compiled_settings(programs.fns.config) != compiled_settings(config)

@@ -13,6 +13,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from morefree_jax.precision import CHOICES as PRECISION_CHOICES
+from morefree_jax.precision import check_precision
+
 
 def _positive(config, *names: str) -> None:
     """ValueError unless each field (a number, or every width of a non-empty tuple) is > 0."""
@@ -144,8 +147,13 @@ class AgentConfig:
     # Min-max normalise observations by the task's observation_bounds (envs_mjx/normalise.py), as PEG does
     # for block stacking; the Fetch tasks, which take that config, turn it on.
     normalise_observations: bool = False
+    # Matmul inputs in bfloat16 with float32 accumulation ("bf16") or float32 throughout ("f32"); "auto": the
+    # faster on the machine the run starts on (precision.py; docs/learner.md, "Precision"). A run dir records
+    # the concrete choice and a resume keeps it.
+    precision: str = "auto"
 
     def __post_init__(self):
+        check_precision(self.precision, PRECISION_CHOICES)
         _within(self, "alpha", 0.0, 2.0)  # 2: every imagination goal an evaluation goal (dreamer_gc)
         if self.imag_starts < 0:
             raise ValueError(f"imag_starts must be >= 0 (0: every posterior state), got {self.imag_starts}")

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import optax
 
 from morefree_jax.learner_config import OptimizerConfig
+from morefree_jax.precision import dot_general_for
 
 # A Python float, not jnp: a jnp constant starts JAX's backend on import, too early for runtime.configure()
 HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)  # float32(.) equals the jnp.log value
@@ -97,24 +98,27 @@ def glorot_uniform(fan_in: int | None = None, fan_out: int | None = None):
     return init
 
 
-def dense(features: int, use_bias: bool = True, fan_in: int | None = None,
-          fan_out: int | None = None) -> nn.Dense:
-    """A Dense layer as DreamerV2 builds it: Glorot-uniform kernel, zero bias."""
-    return nn.Dense(features, use_bias=use_bias, kernel_init=glorot_uniform(fan_in, fan_out))
+def dense(features: int, use_bias: bool = True, fan_in: int | None = None, fan_out: int | None = None,
+          precision: str = "f32") -> nn.Dense:
+    """A Dense layer as DreamerV2 builds it: Glorot-uniform kernel, zero bias; its matmul at `precision`
+    (precision.py: "bf16" multiplies bfloat16 copies with float32 accumulation, parameters stay float32)."""
+    return nn.Dense(features, use_bias=use_bias, kernel_init=glorot_uniform(fan_in, fan_out),
+                    dot_general=dot_general_for(precision))
 
 
 class MLP(nn.Module):
-    """ELU MLP; optional linear output layer."""
+    """ELU MLP; optional linear output layer. precision: of every matmul (precision.py)."""
 
     layers: Sequence[int]
     out: int | None = None
+    precision: str = "f32"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.layers:
-            x = elu(dense(width)(x))
+            x = elu(dense(width, precision=self.precision)(x))
         if self.out is not None:
-            x = dense(self.out)(x)
+            x = dense(self.out, precision=self.precision)(x)
         return x
 
 
@@ -125,6 +129,7 @@ class ContextMLP(nn.Module):
     With `use_context=False` it is a plain MLP on x (the exploration actor and critic).
     input_size: the size of concat(x, context), for the first layer's initial scale (init_* sets it).
     head_fan_out: the initial scale's fan-out of the output layer, where it stands for several (the actor).
+    precision: of every matmul (precision.py).
     """
 
     layers: Sequence[int]
@@ -132,13 +137,15 @@ class ContextMLP(nn.Module):
     use_context: bool = True
     input_size: int | None = None
     head_fan_out: int | None = None
+    precision: str = "f32"
 
     def setup(self):
-        self.first = dense(self.layers[0], fan_in=self.input_size)
+        precision = self.precision
+        self.first = dense(self.layers[0], fan_in=self.input_size, precision=precision)
         if self.use_context:
-            self.context = dense(self.layers[0], use_bias=False, fan_in=self.input_size)
-        self.hidden = [dense(width) for width in self.layers[1:]]
-        self.head = dense(self.out, fan_out=self.head_fan_out)
+            self.context = dense(self.layers[0], use_bias=False, fan_in=self.input_size, precision=precision)
+        self.hidden = [dense(width, precision=precision) for width in self.layers[1:]]
+        self.head = dense(self.out, fan_out=self.head_fan_out, precision=precision)
 
     def project(self, context: jax.Array) -> jax.Array:
         return self.context(context)
@@ -164,10 +171,12 @@ class LayerNormGRU(nn.Module):
 
     size: int
     use_bias: bool = True
+    precision: str = "f32"
 
     @nn.compact
     def __call__(self, x: jax.Array, state: jax.Array) -> jax.Array:
-        parts = dense(3 * self.size, use_bias=self.use_bias)(jnp.concatenate([x, state], -1))
+        layer = dense(3 * self.size, use_bias=self.use_bias, precision=self.precision)
+        parts = layer(jnp.concatenate([x, state], -1))  # LayerNorm and gates in float32
         parts = nn.LayerNorm(epsilon=1e-3)(parts)
         reset, cand, update = jnp.split(parts, 3, -1)
         cand = jnp.tanh(jax.nn.sigmoid(reset) * cand)
@@ -178,7 +187,8 @@ class LayerNormGRU(nn.Module):
 class RSSM(nn.Module):
     """Recurrent state-space model with a Gaussian stochastic state (PEG: deter 200, hidden 200, stoch 50).
     embed_size: the encoder's output size, for the initial scale of the posterior's split first layer.
-    gru_bias: the GRU input layer's bias (LayerNormGRU)."""
+    gru_bias: the GRU input layer's bias (LayerNormGRU). precision: of every matmul (precision.py); the
+    state carried across steps (deter, stoch) and the statistics stay float32."""
 
     deter: int
     hidden: int
@@ -186,16 +196,18 @@ class RSSM(nn.Module):
     min_std: float = 0.1
     embed_size: int | None = None
     gru_bias: bool = True
+    precision: str = "f32"
 
     def setup(self):
-        self.img_in = dense(self.hidden)
-        self.gru = LayerNormGRU(self.deter, self.gru_bias)
-        self.img_out = dense(self.hidden)
-        self.img_stats = dense(2 * self.stoch)
+        precision = self.precision
+        self.img_in = dense(self.hidden, precision=precision)
+        self.gru = LayerNormGRU(self.deter, self.gru_bias, precision)
+        self.img_out = dense(self.hidden, precision=precision)
+        self.img_stats = dense(2 * self.stoch, precision=precision)
         posterior_fan_in = self.deter + self.embed_size if self.embed_size else None
-        self.obs_deter = dense(self.hidden, fan_in=posterior_fan_in)
-        self.obs_embed = dense(self.hidden, use_bias=False, fan_in=posterior_fan_in)
-        self.obs_stats = dense(2 * self.stoch)
+        self.obs_deter = dense(self.hidden, fan_in=posterior_fan_in, precision=precision)
+        self.obs_embed = dense(self.hidden, use_bias=False, fan_in=posterior_fan_in, precision=precision)
+        self.obs_stats = dense(2 * self.stoch, precision=precision)
 
     def _stats(self, raw: jax.Array) -> Gaussian:
         mean, std = jnp.split(raw, 2, -1)

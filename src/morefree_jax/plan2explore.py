@@ -31,16 +31,19 @@ from morefree_jax.networks import (
     init_net_state,
     make_optimizer,
 )
+from morefree_jax.precision import matmul
 
 
 class Ensemble(NamedTuple):
     member: MLP
     config: ExploreConfig
     optimizer: optax.GradientTransformation
+    precision: str = "f32"  # of ensemble_predict's matmuls (precision.py)
 
 
-def make_ensemble(cfg: ExploreConfig, stoch_size: int) -> Ensemble:
-    return Ensemble(MLP(cfg.layers, out=stoch_size), cfg, make_optimizer(cfg.opt))
+def make_ensemble(cfg: ExploreConfig, stoch_size: int, precision: str = "f32") -> Ensemble:
+    return Ensemble(MLP(cfg.layers, out=stoch_size, precision=precision), cfg, make_optimizer(cfg.opt),
+                    precision)
 
 
 def init_ensemble(ens: Ensemble, key: jax.Array, input_size: int) -> NetState:
@@ -61,12 +64,12 @@ def ensemble_predict(ens: Ensemble, params, inputs: jax.Array) -> jax.Array:
     members, in_size, width = layers[0]["kernel"].shape
     flat = inputs.reshape(-1, in_size)
     kernel = jnp.transpose(layers[0]["kernel"], (1, 0, 2)).reshape(in_size, members * width)
-    h = elu(flat @ kernel + layers[0]["bias"].reshape(-1))
+    h = elu(matmul(flat, kernel, ens.precision) + layers[0]["bias"].reshape(-1))
     h = jnp.transpose(h.reshape(-1, members, width), (1, 0, 2))  # (K, M, h)
 
     def rest(member_layers, h):
         for i, layer in enumerate(member_layers):
-            h = h @ layer["kernel"] + layer["bias"]
+            h = matmul(h, layer["kernel"], ens.precision) + layer["bias"]
             if i < len(member_layers) - 1:
                 h = elu(h)
         return h

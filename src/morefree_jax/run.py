@@ -34,6 +34,7 @@ from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitatio
 from morefree_jax.goal_schedule import GOAL_TYPE_NAMES, GoalType, ScheduleState, init_schedule
 from morefree_jax.imagination import GoalPools
 from morefree_jax.planner import PlannerState, start_search
+from morefree_jax.precision import resolve_precision
 from morefree_jax.variants import variant
 
 GOAL_POOL_SIZE = 64  # evaluation goals / initial states sampled per chunk for the imagination goal mix
@@ -96,7 +97,8 @@ class AgentEntry(NamedTuple):
 def compiled_settings(config) -> tuple:
     """The parts of `config` the run functions depend on; equal settings give identical functions."""
     run = config.run
-    return (config.agent, config.planner, config.schedule, config.baseline,
+    agent = dataclasses.replace(config.agent, precision=resolve_precision(config.agent.precision))
+    return (agent, config.planner, config.schedule, config.baseline,
             *(getattr(run, key) for key in COMPILED_RUN_KEYS))
 
 

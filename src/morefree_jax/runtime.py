@@ -27,6 +27,8 @@ experiments/benchmarks/core.py on the 2-core dev machine):
      (threads contend for it: `cpu` train step 78 -> ~147 ms), hence not the default.
   2. YNNPACK fusions off (`--xla_cpu_experimental_ynn_fusion_type=`): XLA's own dot emitter runs the
      (33750, 400) x (400, 400) matmuls of the paper-size ensemble at ~350 GFLOP/s instead of ~170-250.
+     Only for float32 learners (`configure(precision=...)`): with bfloat16 inputs YNNPACK's dots are the
+     fast ones (docs/performance.md, "Precision").
 - `default`: touch nothing.
 
 XLA flags take effect only if no JAX backend exists yet; flags already in XLA_FLAGS are left as they are.
@@ -135,8 +137,9 @@ def _checked(mode: str) -> str:
 _applied: dict | None = None  # what configure() applied in this process (None: not called)
 
 
-def configure(mode: str | None = None) -> dict:
+def configure(mode: str | None = None, precision: str = "auto") -> dict:
     """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied.
+    precision: the learner's agent.precision (precision.py), which decides `large`'s dot emitter.
     Call it before the first JAX computation (XLA reads its flags when its backend starts); a second call
     returns the first call's settings."""
     global _applied
@@ -150,7 +153,10 @@ def configure(mode: str | None = None) -> dict:
     if mode == "default":
         _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": False, "xla_flags": []}
         return _applied
-    wanted = [IN_PLACE_LOOPS, *([YNN_OFF] if mode == "large" else []),
+    from morefree_jax.precision import cpu_precision  # no JAX: safe before the backend starts
+
+    float32_dots = cpu_precision(precision) == "f32"
+    wanted = [IN_PLACE_LOOPS, *([YNN_OFF] if mode == "large" and float32_dots else []),
               *([WIDE_VECTORS] if _has_avx512() else [])]
     keep = _keep_freed_memory() if mode == "large" and allocator == "glibc" else False
     _applied = {"mode": mode, "allocator": allocator, "keep_freed_memory": keep,

@@ -62,12 +62,13 @@ class WorldModel(NamedTuple):
         return self.config.deter + self.config.stoch
 
 
-def make_world_model(cfg: WorldModelConfig, obs_size: int) -> WorldModel:
+def make_world_model(cfg: WorldModelConfig, obs_size: int, precision: str = "f32") -> WorldModel:
     return WorldModel(
-        encoder=MLP(cfg.encoder_layers),
-        rssm=RSSM(cfg.deter, cfg.hidden, cfg.stoch, cfg.min_std, cfg.encoder_layers[-1], cfg.gru_bias),
-        decoder=MLP(cfg.decoder_layers, out=obs_size),
-        embed_head=MLP(cfg.embed_head_layers, out=cfg.encoder_layers[-1]),
+        encoder=MLP(cfg.encoder_layers, precision=precision),
+        rssm=RSSM(cfg.deter, cfg.hidden, cfg.stoch, cfg.min_std, cfg.encoder_layers[-1], cfg.gru_bias,
+                  precision),
+        decoder=MLP(cfg.decoder_layers, out=obs_size, precision=precision),
+        embed_head=MLP(cfg.embed_head_layers, out=cfg.encoder_layers[-1], precision=precision),
         config=cfg,
     )
 

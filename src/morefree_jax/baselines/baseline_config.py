@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from morefree_jax.precision import check_precision
+
 WEIGHT_INITS = ("xavier", "orthogonal")
 ALPHA_UPDATES = ("adam", "clipped_step")
 
@@ -47,8 +49,10 @@ class SACConfig:
     actor_update_every: int = 1
     target_update_every: int = 1
     target_entropy_per_dim: float = -0.5
+    precision: str = "f32"  # of the networks' matmuls: "f32" or "bf16" (morefree_jax/precision.py)
 
     def __post_init__(self):
+        check_precision(self.precision)
         for name in ("feature_dim", "hidden_dim", "lr", "init_temperature", "batch_size", "hidden_depth",
                      "critic_loss_weight", "alpha_step_size", "actor_update_every", "target_update_every"):
             if getattr(self, name) <= 0:

@@ -27,6 +27,7 @@ from flax import struct
 
 from morefree_jax.baselines.baseline_config import SACConfig
 from morefree_jax.networks import NetState, gradient_update, init_net_state
+from morefree_jax.precision import dot_general_for
 
 
 class SACBatch(NamedTuple):
@@ -37,20 +38,22 @@ class SACBatch(NamedTuple):
     not_done: jax.Array  # (B,) 0 where the episode ended on that step (no bootstrap), else 1
 
 
-def _dense(features: int, weight_init: str) -> nn.Dense:
+def _dense(features: int, weight_init: str, precision: str) -> nn.Dense:
     # built here, not at import: making an initializer starts JAX's backend (importing changes nothing)
     kernel_init = (nn.initializers.orthogonal() if weight_init == "orthogonal"
                    else nn.initializers.xavier_uniform())
-    return nn.Dense(features, kernel_init=kernel_init, bias_init=nn.initializers.zeros)
+    return nn.Dense(features, kernel_init=kernel_init, bias_init=nn.initializers.zeros,
+                    dot_general=dot_general_for(precision))
 
 
 class _Trunk(nn.Module):
     feature_dim: int
     weight_init: str
+    precision: str
 
     @nn.compact
-    def __call__(self, obs):
-        return jnp.tanh(nn.LayerNorm()(_dense(self.feature_dim, self.weight_init)(obs)))
+    def __call__(self, obs):  # LayerNorm in float32 at either precision
+        return jnp.tanh(nn.LayerNorm()(_dense(self.feature_dim, self.weight_init, self.precision)(obs)))
 
 
 class _Head(nn.Module):
@@ -58,12 +61,13 @@ class _Head(nn.Module):
     out: int
     depth: int
     weight_init: str
+    precision: str
 
     @nn.compact
     def __call__(self, x):
         for _ in range(self.depth):
-            x = nn.relu(_dense(self.hidden_dim, self.weight_init)(x))
-        return _dense(self.out, self.weight_init)(x)
+            x = nn.relu(_dense(self.hidden_dim, self.weight_init, self.precision)(x))
+        return _dense(self.out, self.weight_init, self.precision)(x)
 
 
 class Actor(nn.Module):
@@ -75,8 +79,9 @@ class Actor(nn.Module):
     @nn.compact
     def __call__(self, obs):
         cfg = self.config
-        trunk = _Trunk(cfg.feature_dim, cfg.weight_init)(obs)
-        out = _Head(cfg.hidden_dim, 2 * self.action_size, cfg.hidden_depth, cfg.weight_init)(trunk)
+        trunk = _Trunk(cfg.feature_dim, cfg.weight_init, cfg.precision)(obs)
+        out = _Head(cfg.hidden_dim, 2 * self.action_size, cfg.hidden_depth, cfg.weight_init,
+                    cfg.precision)(trunk)
         mean, log_std = jnp.split(out, 2, axis=-1)
         if cfg.log_std_squash:  # IBC: a smooth squash instead of MEDAL's hard clip
             unit = 0.5 * (jnp.tanh(log_std) + 1.0)
@@ -92,9 +97,10 @@ class Critic(nn.Module):
     @nn.compact
     def __call__(self, obs, action):
         cfg = self.config
-        features = jnp.concatenate([_Trunk(cfg.feature_dim, cfg.weight_init)(obs), action], axis=-1)
-        q1 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init)(features)[..., 0]
-        q2 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init)(features)[..., 0]
+        trunk = _Trunk(cfg.feature_dim, cfg.weight_init, cfg.precision)(obs)
+        features = jnp.concatenate([trunk, action], axis=-1)
+        q1 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init, cfg.precision)(features)[..., 0]
+        q2 = _Head(cfg.hidden_dim, 1, cfg.hidden_depth, cfg.weight_init, cfg.precision)(features)[..., 0]
         return q1, q2
 
 
