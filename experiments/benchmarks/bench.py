@@ -22,7 +22,8 @@ import time
 
 from experiments.cli import KeyValueError, parse_keys
 
-SECTIONS = ("core", "envs", "loop", "model_free", "seeds")  # modules of this package with run(quick)
+# modules of this package with run(quick)
+SECTIONS = ("core", "envs", "loop", "model_free", "seeds", "whole_run")
 
 
 def parse_args(argv=None) -> dict:

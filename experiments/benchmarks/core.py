@@ -2,10 +2,13 @@
 achieved FLOP/s of train_step (XLA cost analysis) next to a matmul peak measured in the same run.
 
     PYTHONPATH=src:. python -c "import experiments.benchmarks.core as b; print(b.run())"
-    PYTHONPATH=src:. python experiments/benchmarks/core.py [presets=paper,cpu] [reps=3]
+    PYTHONPATH=src:. python experiments/benchmarks/core.py [presets=paper,cpu] [precisions=f32,bf16] [reps=3]
 
 Shapes: `paper` with ant shapes (obs 29, action 8, batch 45 x 50, the reference TF2 measurement);
-`cpu` with PointUMaze shapes (obs 7, action 2). Rows: {"section", "name", "value", "unit", "note"}.
+`cpu` with PointUMaze shapes (obs 7, action 2). Each preset at each precision (agent.precision; rows
+`<preset>_<precision>/...`); the paper rows come from one child process per precision in the `large`
+runtime that precision uses (morefree_jax.runtime), each with its own matmul peak. Rows: {"section", "name",
+"value", "unit", "note"}.
 """
 
 from __future__ import annotations
@@ -66,8 +69,8 @@ def layer_chains_rate(n: int = 256, layers: int = 100, reps: int = 3) -> float:
     return 2 * layers * 2 * n**3 / _time(chains, x, y, reps=reps)
 
 
-def _inputs(name: str):
-    cfg, spec = preset(name), SHAPES[name]
+def _inputs(name: str, precision: str = "f32"):
+    cfg, spec = dataclasses.replace(preset(name), precision=precision), SHAPES[name]
     agent = make_agent(cfg, spec)
     b, t = cfg.replay.batch, cfg.replay.length
     key_obs, key_act = jax.random.split(jax.random.PRNGKey(1))
@@ -93,8 +96,8 @@ def train_step_flops(config, spec, state, batch, pools, key) -> float:
     return float(jax.jit(agent.train_step).lower(state, batch, pools, key).cost_analysis()["flops"])
 
 
-def bench_train(name: str, reps: int, peak: float) -> list[dict]:
-    agent, state, batch, pools = _inputs(name)
+def bench_train(name: str, reps: int, peak: float, precision: str = "f32") -> list[dict]:
+    agent, state, batch, pools = _inputs(name, precision)
     key = jax.random.PRNGKey(2)
     start = time.perf_counter()
     compiled = jax.jit(agent.train_step).lower(state, batch, pools, key).compile()
@@ -102,17 +105,18 @@ def bench_train(name: str, reps: int, peak: float) -> list[dict]:
     jax.block_until_ready(compiled(state, batch, pools, key))  # warm-up, finished before timing starts
     step_s = _time(compiled, state, batch, pools, key, reps=reps)
     flops = train_step_flops(agent.config, agent.spec, state, batch, pools, key)
+    label = f"{name}_{precision}"
     rows = [
-        _row(f"{name}/train_step_compile", compile_s, "s"),
-        _row(f"{name}/train_step", step_s * 1e3, "ms", "all five learners"),
-        _row(f"{name}/train_step_gflop", flops / 1e9, "GFLOP", "XLA cost analysis"),
-        _row(f"{name}/train_step_flops", flops / step_s / 1e9, "GFLOP/s",
-             f"{flops / step_s / peak:.0%} of the matmul peak"),
+        _row(f"{label}/train_step_compile", compile_s, "s"),
+        _row(f"{label}/train_step", step_s * 1e3, "ms", "all five learners"),
+        _row(f"{label}/train_step_gflop", flops / 1e9, "GFLOP", "XLA cost analysis"),
+        _row(f"{label}/train_step_flops", flops / step_s / 1e9, "GFLOP/s",
+             f"{flops / step_s / peak:.0%} of the f32 matmul peak"),
     ]
     if name == "paper":  # a constant from another day, not a ratio: this machine's speed varies by ~2x
         rows.append(_row("paper/tf2_train_step_constant", REFERENCE_TRAIN_S, "s",
                          "CONSTANT, not measured in this run: TF2 original, paper config (issue 3)"))
-    return rows + bench_components(name, agent, state, batch, pools, reps)
+    return rows + bench_components(label, agent, state, batch, pools, reps)
 
 
 def bench_components(name, agent, state, batch, pools, reps) -> list[dict]:
@@ -168,43 +172,50 @@ def bench_act(name: str, steps: int = 1000) -> list[dict]:
             _row(f"{name}/act_in_scan", scan_s * 1e3, "ms", f"per step of a {steps}-step lax.scan")]
 
 
-def _paper_in_large_runtime(reps: int) -> list[dict]:
-    """The paper rows from a child process in MOREFREE_JAX_RUNTIME=large on jemalloc where installed (what
-    `make train PRESET=paper` uses; the allocator and XLA flags are fixed when a process starts, see
-    morefree_jax.runtime)."""
+def _paper_in_large_runtime(reps: int, precision: str) -> list[dict]:
+    """The paper rows of one precision from a child process in MOREFREE_JAX_RUNTIME=large on jemalloc where
+    installed (what `make train PRESET=paper` uses; the allocator and XLA flags, which depend on the
+    precision, are fixed when a process starts, see morefree_jax.runtime)."""
     env = {**os.environ, runtime.MODE_VARIABLE: "large", **runtime.allocator_env()}
-    command = [sys.executable, "-m", "experiments.benchmarks.core", "presets=paper", f"reps={reps}", "json=1"]
+    command = [sys.executable, "-m", "experiments.benchmarks.core", "presets=paper", f"reps={reps}", "json=1",
+               f"precisions={precision}"]
     done = subprocess.run(command, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise RuntimeError(f"the paper benchmark's child process failed: {done.stderr.strip()[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: int = 3) -> list[dict]:
+def run(quick: bool = False, presets: tuple[str, ...] = ("paper", "cpu"), reps: int = 3,
+        precisions: tuple[str, ...] = ("f32", "bf16")) -> list[dict]:
     if quick:  # smoke test: the matmul peak and one act call of the debug preset
         peak = matmul_peak(1024, reps=3)
         peak_row = _row("matmul_peak_1024", peak / 1e9, "GFLOP/s", "f32 1024^3 under jit")
         return [peak_row, *bench_act("debug", 0)]
     mode = runtime.runtime_mode()
+    rows = []
     if "paper" in presets and mode != "large":
-        rows = _paper_in_large_runtime(reps)
+        for precision in precisions:
+            rows += _paper_in_large_runtime(reps, precision)
         presets = tuple(name for name in presets if name != "paper")
-    else:
-        rows = []
     peak = matmul_peak()
     allocator = runtime.settings()["allocator"]
+    flags = " ".join(runtime.settings()["xla_flags"]) or "none"
     rows.append(_row("matmul_peak_2048", peak / 1e9, "GFLOP/s",
-                     f"f32 2048^3 under jit, runtime {mode}, allocator {allocator}"))
+                     f"f32 2048^3 under jit, runtime {mode}, allocator {allocator}, XLA flags {flags}"))
     for name in presets:
         rows += bench_act(name)
-        rows += bench_train(name, reps, peak)
+        for precision in precisions:
+            rows += bench_train(name, reps, peak, precision)
     return rows
 
 
 def main(argv: list[str]) -> int:
-    args = parse_keys(argv, {"presets": "paper,cpu", "reps": 3, "quick": False, "json": False})
-    runtime.configure()  # before any JAX computation
-    rows = run(args["quick"], tuple(args["presets"].split(",")), args["reps"])
+    args = parse_keys(argv, {"presets": "paper,cpu", "reps": 3, "quick": False, "json": False,
+                             "precisions": "f32,bf16"})
+    precisions = tuple(args["precisions"].split(","))
+    # before any JAX computation; a single precision picks its XLA flags (the paper child processes)
+    runtime.configure(precision=precisions[0] if len(precisions) == 1 else "auto")
+    rows = run(args["quick"], tuple(args["presets"].split(",")), args["reps"], precisions)
     if args["json"]:
         print(json.dumps(rows))
         return 0

@@ -39,10 +39,11 @@ def _timed(fn, *args):
     return out, time.perf_counter() - start
 
 
-def run_throughput(num_seeds: int, seed_axis: str, chunks: int) -> dict:
+def run_throughput(num_seeds: int, seed_axis: str, chunks: int, precision: str = "auto") -> dict:
     """Compile seconds (collect + train) and mean chunk seconds of a cpu-preset morefree point_umaze run of
     `num_seeds` seeds in one program, after its prefill and one warm-up chunk."""
-    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=cpu"], envs_mjx.ALL_ENVS)
+    arguments = ["env=point_umaze", "agent=morefree", "preset=cpu", f"agent.precision={precision}"]
+    config = resolve_config(arguments, envs_mjx.ALL_ENVS)
     fns = make_run_fns(config, envs_mjx.make("point_umaze"))
     programs = compile_programs(fns, num_seeds, seed_axis=seed_axis)
     state = programs.prefill(programs.init(jnp.stack([jax.random.PRNGKey(s) for s in range(num_seeds)])))
@@ -86,7 +87,7 @@ def _result(child: subprocess.Popen):
 
 def _two_processes(chunks: int) -> float:
     """Per-seed env steps/s of two single-seed processes running at the same time on this machine."""
-    children = [_child("--run", "1", "map", str(chunks)) for _ in range(2)]
+    children = [_child(f"run=1,map,{chunks}") for _ in range(2)]
     return sum(_per_seed_steps(_result(child)) for child in children) / 2
 
 
@@ -104,7 +105,7 @@ def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vma
             if seed_axis == "vmap" and num_seeds == 1:
                 continue  # one seed runs the same unbatched program in both modes
             try:
-                result = _result(_child("--run", str(num_seeds), seed_axis, str(chunks)))
+                result = _result(_child(f"run={num_seeds},{seed_axis},{chunks}"))
             except RuntimeError as error:  # e.g. out of memory: the row says so, the others still run
                 rows.append(_row(f"cpu_run/{seed_axis}_{num_seeds}_seeds_failed", 0.0, "", str(error)))
                 continue
@@ -164,7 +165,7 @@ def paper_rows(peak: float) -> list[dict]:
     rows, base = [], None
     for label in PAPER_CASES:
         try:
-            result = _result(_child("--paper", label))
+            result = _result(_child(f"paper={label}"))
         except RuntimeError as error:
             rows.append(_row(f"paper/train_step_{label}_failed", 0.0, "", str(error)))
             continue
