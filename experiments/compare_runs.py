@@ -3,7 +3,7 @@
 
     python -m experiments.compare_runs runs=runs/point_umaze/morefree/seed0,runs/point_umaze/rf_peg/seed0
 
-One row per evaluation step that every run has reached; per run: success (any step) / final success /
+One row per evaluation step that every run has reached; per run: success (any step) / success (last step) /
 final distance / task-relevant share of the replay / wall-clock minutes since the run started. A directory
 without metrics.jsonl is an error naming it.
 """

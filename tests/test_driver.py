@@ -86,6 +86,29 @@ def test_two_chunk_run_writes_every_file_with_finite_metrics(agent, tmp_path):
     assert step == TWO_CHUNKS and int(state.stream.steps) == TWO_CHUNKS == int(state.replay.count)
     # pretrain: 5 updates rounded up to one chunk's CHUNK / train_every 20 = 10, then 2 chunks of 10
     assert int(state.agent.updates) == 3 * (CHUNK // 20)
+    assert [r["train/dropped_share"] for r in records if "wm/loss" in r] == [0.0, 0.0]  # every update tried
+
+
+def test_the_dropped_share_counts_updates_dropped_since_the_run_began(tmp_path, capsys):
+    """The second chunk's updates all dropped (as keep_if_finite drops a non-finite one: the agent state,
+    its update counter included, stays as it was): 10 of the 30 updates tried (10 of pretraining, 10 per
+    chunk) are lost, which the log says once."""
+    programs, calls = debug_programs("morefree"), []
+
+    def second_chunk_dropped(state):
+        calls.append(len(calls))
+        before = jax.tree.map(jnp.copy, state.agent)  # train_updates donates its input
+        new_state, metrics = programs.train_updates(state)
+        if len(calls) == 3:  # pretraining, chunk 1, chunk 2
+            updates = before.updates.astype(jnp.float32)
+            new_state, metrics = new_state.replace(agent=before), {**metrics, "train/updates": updates}
+        return new_state, metrics
+
+    config = debug_config("morefree", f"run_dir={tmp_path}", f"steps={TWO_CHUNKS}")
+    driver.train(config, programs=programs._replace(train_updates=second_chunk_dropped), progress="lines")
+    shares = [r["train/dropped_share"] for r in read_metrics(tmp_path / "metrics.jsonl") if "wm/loss" in r]
+    assert shares == [0.0, pytest.approx(1 / 3)]
+    assert capsys.readouterr().out.count("warning: 33.3% of this run's updates so far were non-finite") == 1
 
 
 def _start_cli(run_dir, steps: int) -> subprocess.Popen:

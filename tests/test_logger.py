@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from tensorboardX.proto import event_pb2
 
-from morefree_jax.logger import RunLogger, read_metrics
+from morefree_jax.logger import DROPPED_SHARE, RunLogger, read_metrics
 
 CONFIG = {"env": "point_umaze", "agent": {"alpha": 0.2}, "seed": 3}
 
@@ -119,6 +119,17 @@ def test_plain_progress_lines_when_not_a_tty(tmp_path, capsys):
     assert len(lines) == 2
     assert lines[0].startswith("step 10/40 (25.0%)") and lines[0].endswith("success 1.00")
     assert lines[1].startswith("step 40/40 (100.0%)") and "steps/s" in lines[1]
+
+
+def test_the_dropped_share_is_in_the_progress_line_and_over_one_percent_said_once(tmp_path, capsys):
+    with RunLogger(tmp_path, CONFIG, total_steps=40, line_every_s=0, tensorboard=False) as logger:
+        for step, share in ((10, 0.0), (20, 0.02), (30, 0.03)):
+            logger.log(step, {DROPPED_SHARE: share})
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].endswith("success - dropped 0.0%")
+    assert lines[1].startswith("warning: 2.0% of this run's updates so far were non-finite and dropped")
+    assert lines[2].startswith("step 20/40") and lines[2].endswith("dropped 2.0%")
+    assert lines[3].endswith("dropped 3.0%") and len(lines) == 4  # the warning once
 
 
 def test_timers_and_bad_metrics(tmp_path):

@@ -26,7 +26,7 @@ def write_run(run_dir, task, agent, seed, successes, commit="a" * 40, back_start
                                               + "\n")
     lines = []
     for step, success in zip(STEPS, successes, strict=True):
-        lines.append({"step": step, "wm/loss": 1.0})
+        lines.append({"step": step, "wm/loss": 1.0, "train/dropped_share": 0.002 * seed})
         lines.append({"step": step, "eval/success": success, "eval/final_success": success / 2})
         lines.append({"step": step, "visitation/task_relevant": 0.1 * seed})
         histogram = np.zeros((50, 50))
@@ -59,6 +59,20 @@ def test_curve_is_the_mean_and_standard_error_over_seeds(runs):
     assert stderr[-1] == pytest.approx(np.std(last, ddof=1) / math.sqrt(3))
 
 
+def test_an_alpha_sweeps_runs_are_separate_groups_filtered_by_their_agent(runs):
+    for alpha in (0.5, 0.7):
+        run_dir = runs / "point_umaze" / f"alpha{alpha}" / "seed0"
+        write_run(run_dir, "point_umaze", "morefree", 0, [0.0, 0.1, alpha])
+        config = json.loads((run_dir / "config.json").read_text())
+        config |= {"schedule": {"alpha": alpha}, "agent": {"alpha": alpha if alpha == 0.5 else 0.2}}
+        (run_dir / "config.json").write_text(json.dumps(config))
+    found, _ = run_groups.find_runs(runs, agents=["morefree"])
+    groups = run_groups.group_runs(found)
+    assert sorted(groups) == [("point_umaze", "morefree"), ("point_umaze", "morefree alpha=0.5"),
+                              ("point_umaze", "morefree schedule.alpha=0.7 agent.alpha=0.2")]
+    assert [run.seed for run in groups[("point_umaze", "morefree")]] == [0, 1, 2]  # the defaults' group
+
+
 def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0, 0, 0])
     shutil.copytree(runs / "point_umaze" / "rf_peg" / "seed1", runs / "zz_copy" / "seed1")  # a second copy
@@ -83,7 +97,10 @@ def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     assert float(rows[3]["final_success_mean"]) == pytest.approx(0.15)
     assert rows[0]["commits"] == "aaaaaaa"
     table = (out / "point_umaze_results.md").read_text()
-    assert "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 |" in table and "runs: aaaaaaa" in table
+    row = "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 | 0.15 ± 0.05 | 0.050 | 0.1% | aaaaaaa |"
+    assert row in table
+    assert "| success (any step) | success (last step) |" in table and "runs: aaaaaaa" in table
+    assert float(rows[3]["dropped_share_mean"]) == pytest.approx(0.001)
     assert b"runs: aaaaaaa" in (out / "point_umaze_success.svg").read_bytes()
     assert {"ablation.png", "ablation.svg", "ablation.csv", "ablation.md"} <= names  # morefree and rf_peg ran
 

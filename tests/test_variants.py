@@ -72,7 +72,9 @@ def test_layers_preset_task_planner_variant_then_overrides():
     (["steps=0"], "steps must be > 0, got 0"),
     (["seed=1.5"], "seed expects int"),
     (["planner.init_std=nan"], "finite"),
-    (["alpha=0.1"], "ambiguous"),
+    (["agent=rf_peg", "alpha=0.1"], "sets the paper's alpha of morefree, mf_task_only, not of agent rf_peg"),
+    (["agent=oracle_sac", "alpha=0.1"], "not of agent oracle_sac"),
+    (["alpha=0.5", "schedule.alpha=0.2"], "give it or them, not schedule.alpha=0.2 too"),
 ])
 def test_bad_input_is_a_one_line_error_naming_what_is_valid(arguments, message):
     given = {argument.split("=")[0] for argument in arguments}  # a key given twice is its own error
@@ -80,6 +82,14 @@ def test_bad_input_is_a_one_line_error_naming_what_is_valid(arguments, message):
     with pytest.raises(ConfigError) as error:
         resolve(*base, *arguments)
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("agent", ["morefree", "mf_task_only"])
+def test_alpha_sets_the_papers_alpha_in_collection_and_imagination(agent):
+    config = resolve("env=point_umaze", f"agent={agent}", "alpha=0.7")
+    assert (config.schedule.kind, config.schedule.alpha, config.agent.alpha) == ("back_and_forth", 0.7, 0.7)
+    separate = resolve("env=point_umaze", f"agent={agent}", "schedule.alpha=0.7", "agent.alpha=0.7")
+    assert separate == config
 
 
 @pytest.mark.parametrize("task, expected", [

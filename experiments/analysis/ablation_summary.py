@@ -1,6 +1,6 @@
 """The paper's ablation figure: each variant's final performance normalised by MoReFree's, over tasks.
 
-    rows = task_rows(groups)          # per task and agent: final success, and / MoReFree's on that task
+    rows = task_rows(groups)          # per task and agent: final performance, and / MoReFree's on that task
     summary = summary_rows(rows)      # per agent: mean and standard error of the normalised value over tasks
 
 The paper ("Ablations on 5 variants of MoReFree over 3 hard environments ... with normalized final
@@ -39,7 +39,8 @@ def _final_steps(series: dict[str, list[dict]]) -> list[int]:
 
 
 def task_rows(groups) -> list[dict]:
-    """Per task with morefree and an ablation: each compared agent's final success and its normalised one."""
+    """Per task with morefree and an ablation: each compared agent's final performance and its normalised
+    one."""
     rows = []
     for task in sorted({task for task, _ in groups}):
         agents = _compared(groups, task)
@@ -73,10 +74,11 @@ def summary_rows(rows: list[dict]) -> list[dict]:
 
 
 def markdown(rows: list[dict], summary: list[dict]) -> str:
-    lines = ["| agent | tasks | normalised final success (mean ± s.e. over tasks) |", "|---|---|---|"]
+    lines = ["| agent | tasks | normalised final performance (mean ± s.e. over tasks) |", "|---|---|---|"]
     lines += [f"| {s['agent']} | {s['tasks']} | "
               f"{run_groups.with_error(s['normalised_mean'], s['normalised_stderr'])} |" for s in summary]
-    lines += ["", "| task | agent | seeds | env steps | evaluations | final success | normalised | commits |",
+    lines += ["", "| task | agent | seeds | env steps | evaluations | "
+              f"mean {run_groups.SUCCESS_ANY} | normalised | commits |",
               "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['task']} | {r['agent']} | {r['seeds']} | {r['start']:,}-{r['stop']:,} | "
               f"{r['evaluations']} | {run_groups.with_error(r['success_mean'], r['success_stderr'])} | "
@@ -85,7 +87,7 @@ def markdown(rows: list[dict], summary: list[dict]) -> str:
 
 
 def figure(rows: list[dict], summary: list[dict], new_figure):
-    """Bars: mean normalised final success per agent over tasks (standard error); dots: each task."""
+    """Bars: mean normalised final performance per agent over tasks (standard error); dots: each task."""
     fig = new_figure(1.2 * len(summary) + 2.0, 3.6)
     ax = fig.add_subplot(1, 1, 1)
     positions = np.arange(len(summary))
@@ -96,7 +98,7 @@ def figure(rows: list[dict], summary: list[dict], new_figure):
         values = [r["normalised"] for r in rows if r["agent"] == entry["agent"]]
         ax.scatter(np.full(len(values), position), values, s=10, color="black", zorder=3)
     tasks = sorted({r["task"] for r in rows})
-    ax.set(xticks=positions, ylabel="final success / morefree's",
+    ax.set(xticks=positions, ylabel=f"{run_groups.SUCCESS_ANY} / morefree's",
            title=f"ablations, normalised final performance ({', '.join(tasks)})")
     # Bars may rest on different tasks (a variant counts where it ran): each label says on how many.
     ax.set_xticklabels([f"{s['agent']} ({s['tasks']})" for s in summary], rotation=20, fontsize=8)

@@ -14,8 +14,8 @@ import numpy as np
 
 from experiments.analysis import ablation_summary, run_groups
 
-CURVES = (("success", "eval/success", "success (any step)"),
-          ("final_success", "eval/final_success", "success (last step)"),
+CURVES = (("success", "eval/success", run_groups.SUCCESS_ANY),
+          ("final_success", "eval/final_success", run_groups.SUCCESS_LAST),
           ("task_relevant", "visitation/task_relevant", "task-relevant share of the replay"))
 
 

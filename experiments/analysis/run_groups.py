@@ -16,7 +16,8 @@ import pathlib
 
 import numpy as np
 
-from morefree_jax.logger import PROVENANCE_FILE, read_metrics
+from morefree_jax import variants
+from morefree_jax.logger import DROPPED_SHARE, PROVENANCE_FILE, read_metrics
 
 
 class NoRunsError(Exception):
@@ -29,13 +30,20 @@ class RunRecord:
 
     run_dir: pathlib.Path
     task: str
-    agent: str
+    agent: str  # the group's label: the agent's name, with its alpha when a sweep changed it
     seed: int
     steps: dict[int, dict]
     commits: tuple[str, ...]
+    base_agent: str = ""  # the registry's name (agents= filters on it)
 
     def evaluations(self, key: str = "eval/success") -> dict[int, float]:
         return {step: record[key] for step, record in sorted(self.steps.items()) if key in record}
+
+    def latest(self, key: str, step: int) -> float:
+        """`key` as last logged at or before `step` (NaN if never): the dropped share is logged every
+        log_every steps, not with the evaluations."""
+        logged = [value for at, value in self.evaluations(key).items() if at <= step]
+        return logged[-1] if logged else math.nan
 
 def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
     """Short commits of every start of the run (provenance.jsonl), '+dirty' when the tree had changes."""
@@ -51,20 +59,37 @@ def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
     return tuple(seen) or ("unknown",)
 
 
+def agent_label(config: dict) -> str:
+    """The agent's name, plus its alpha where the run set it away from the variant's (an alpha sweep's
+    runs are separate groups): "morefree alpha=0.5", or both keys when they differ."""
+    agent = config["run"]["agent"]
+    if agent not in variants.VARIANTS:
+        return agent
+    chosen = variants.VARIANTS[agent]
+    collect = config.get("schedule", {}).get("alpha", chosen.collect_alpha)
+    imagine = config.get("agent", {}).get("alpha", chosen.imagination_alpha)
+    if (collect, imagine) == (chosen.collect_alpha, chosen.imagination_alpha):
+        return agent
+    if collect == imagine:
+        return f"{agent} alpha={collect:g}"
+    return f"{agent} schedule.alpha={collect:g} agent.alpha={imagine:g}"
+
+
 def read_run(run_dir: pathlib.Path) -> RunRecord:
     """The run in `run_dir`; ValueError (one line: why) when it cannot be used."""
     metrics = run_dir / "metrics.jsonl"
     if not metrics.exists():
         raise ValueError("no metrics.jsonl (not started yet?)")
     try:
-        run = json.loads((run_dir / "config.json").read_text())["run"]
-        task, agent, seed = run["env"], run["agent"], int(run["seed"])
+        config = json.loads((run_dir / "config.json").read_text())
+        run = config["run"]
+        task, agent, seed, label = run["env"], run["agent"], int(run["seed"]), agent_label(config)
     except (KeyError, ValueError, TypeError) as error:
         raise ValueError(f"config.json is not a run config ({error})") from None
     steps: dict[int, dict] = {}
     for record in read_metrics(metrics):
         steps.setdefault(int(record["step"]), {}).update(record)
-    record = RunRecord(run_dir, task, agent, seed, steps, _commits(run_dir))
+    record = RunRecord(run_dir, task, label, seed, steps, _commits(run_dir), agent)
     if not record.evaluations():
         raise ValueError("no evaluation yet")
     return record
@@ -88,7 +113,7 @@ def find_runs(root, task: str | None = None, agents=None) -> tuple[list[RunRecor
             skipped.append(f"skipped {run_dir}: holds task {record.task}, not {task}")
             continue
         runs.append(record)
-    chosen = [run for run in runs if agents is None or run.agent in agents]
+    chosen = [run for run in runs if agents is None or run.base_agent in agents]
     if not chosen:
         where = f"{root}" + (f" for task {task}" if task else "")
         if runs:  # there are runs, of other agents
@@ -153,8 +178,11 @@ def step_at_mark(group: list[RunRecord], mark: int) -> int | None:
     return max(s for s in steps if s <= mark)
 
 
+# The two success measures, named alike in every table and figure (docs/experiments.md, "Evaluation
+# protocol").
+SUCCESS_ANY, SUCCESS_LAST = "success (any step)", "success (last step)"
 RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_stderr", "final_success_mean",
-                  "final_success_stderr", "task_relevant_mean", "commits")
+                  "final_success_stderr", "task_relevant_mean", "dropped_share_mean", "commits")
 
 
 def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
@@ -171,9 +199,10 @@ def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
             success = mean_stderr([r["eval/success"] for r in at])
             final = mean_stderr([r.get("eval/final_success", math.nan) for r in at])
             relevant = mean_stderr([r.get("visitation/task_relevant", math.nan) for r in at])
+            dropped = mean_stderr([run.latest(DROPPED_SHARE, step) for run in group])
             commits = sorted({c for run in group for c in run.commits})
             rows.append(dict(zip(RESULT_COLUMNS, (task, agent, len(group), step, *success, *final,
-                                                  relevant[0], " ".join(commits)), strict=True)))
+                                                  relevant[0], dropped[0], " ".join(commits)), strict=True)))
     return rows
 
 
@@ -200,23 +229,29 @@ def window_rows(groups, start: int, stop: int) -> list[dict]:
     return rows
 
 
+def percent(share: float) -> str:
+    """A share as a percentage; "-" where none was logged (model-free agents drop no update)."""
+    return "-" if math.isnan(share) else f"{100 * share:.1f}%"
+
+
 def with_error(mean: float, stderr: float) -> str:
     return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
 
 
 def markdown_table(rows: list[dict]) -> str:
-    lines = ["| task | agent | seeds | env steps | success | final success | task-relevant | commits |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [f"| task | agent | seeds | env steps | {SUCCESS_ANY} | {SUCCESS_LAST} | task-relevant | "
+             "dropped updates | commits |", "|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | {row['step']:,} | "
                      f"{with_error(row['success_mean'], row['success_stderr'])} | "
                      f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
-                     f"{row['task_relevant_mean']:.3f} | {row['commits']} |")
+                     f"{row['task_relevant_mean']:.3f} | {percent(row['dropped_share_mean'])} | "
+                     f"{row['commits']} |")
     return "\n".join(lines) + "\n"
 
 
 def window_markdown(rows: list[dict]) -> str:
-    lines = ["| task | agent | seeds | env steps | evaluations | mean success | mean final success "
+    lines = [f"| task | agent | seeds | env steps | evaluations | mean {SUCCESS_ANY} | mean {SUCCESS_LAST} "
              "| commits |", "|---|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "

@@ -18,7 +18,7 @@ import dataclasses
 from typing import Literal
 
 from envs_mjx import env_class
-from morefree_jax import registry
+from morefree_jax import registry, variants
 from morefree_jax.baselines.baseline_config import ModelFreeConfig
 from morefree_jax.config_tree import (
     ConfigError,
@@ -138,6 +138,9 @@ SHORT_KEYS = {"env": "env", "agent": "agent", "preset": "preset", "seed": "seed"
 # in the run dir's provenance.jsonl.
 RESUMABLE_KEYS = ("run.run_dir", "run.total_steps", "run.checkpoint_minutes", "run.seed_axis",
                   "run.checkpoint_every", "run.keep_checkpoints", "run.log_every", "run.eval_every")
+# The paper's alpha (Sec. 4, Alg. 2: the back-and-forth probability and the imagination goal shares alpha/2,
+# alpha/2, 1 - alpha): one CLI key for both schedule.alpha and agent.alpha, which stay separate for ablations.
+PAPER_ALPHA = "alpha"
 # Filled from the task's default_config(); a run needs them resolved (resolve_config does it).
 TASK_RUN_KEYS = ("total_steps", "train_every", "subgoal_threshold")
 
@@ -151,8 +154,8 @@ def _full_key(key: str) -> str:
         return "agent." + key
     if "." not in key and key in field_types(RunConfig):
         return "run." + key
-    if key == "alpha":
-        raise ConfigError("alpha is ambiguous; set agent.alpha (imagination) or schedule.alpha (collection)")
+    if key == PAPER_ALPHA:
+        return PAPER_ALPHA
     run_keys = [name for name in field_types(RunConfig) if name not in SHORT_KEYS.values()]
     shown = ", ".join([*SHORT_KEYS, *run_keys, "agent.<key>", "planner.<key>", "schedule.<key>",
                        "baseline.<key>",
@@ -178,6 +181,25 @@ def split_arguments(arguments) -> tuple[dict[str, str], list[str]]:
         else:
             overrides.append(f"{full}={value}")
     return short, overrides
+
+
+def _expand_paper_alpha(overrides: list[str], agent: str) -> list[str]:
+    """`alpha=v` -> schedule.alpha=v and agent.alpha=v, for the agents whose two alphas are the paper's one;
+    where they are not (rf_peg, the other ablations, the model-free baselines) it is a ConfigError."""
+    given = [override for override in overrides if override.partition("=")[0] == PAPER_ALPHA]
+    if not given:
+        return overrides
+    valid = variants.paper_alpha_agents()
+    if agent not in valid:
+        raise ConfigError(f"alpha= sets the paper's alpha of {', '.join(valid)}, not of agent {agent}; "
+                          "set schedule.alpha (collection) or agent.alpha (imagination) instead")
+    separate = ("schedule.alpha", "agent.alpha")
+    both = [override for override in overrides if override.partition("=")[0] in separate]
+    if both:
+        raise ConfigError(f"alpha= sets schedule.alpha and agent.alpha; give it or them, not {both[0]} too")
+    value = given[0].partition("=")[2]
+    rest = [override for override in overrides if override not in given]
+    return [*rest, f"schedule.alpha={value}", f"agent.alpha={value}"]
 
 
 def task_overrides(env: str) -> list[str]:
@@ -215,7 +237,7 @@ def resolve_config(arguments, valid_envs) -> Config:
     except ConfigError as error:  # speak of the CLI name "steps", not the field
         message = str(error).replace("run.total_steps", "steps").replace("total_steps", "steps")
         raise ConfigError(message) from None
-    config = apply_overrides(config, overrides)
+    config = apply_overrides(config, _expand_paper_alpha(overrides, run.agent))
     missing = [key for key in TASK_RUN_KEYS if getattr(config.run, key) is None]
     if missing:
         raise ConfigError(f"{', '.join(missing)} may not be none (the task's defaults fill them)")

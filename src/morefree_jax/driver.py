@@ -41,7 +41,7 @@ from morefree_jax.compile import (
     stack_seeds,
 )
 from morefree_jax.config import RESUMABLE_KEYS, Config, ConfigError, config_from_dict, config_to_dict
-from morefree_jax.logger import RunLogger
+from morefree_jax.logger import DROPPED_SHARE, RunLogger
 from morefree_jax.precision import default_precision, stored_precision
 from morefree_jax.registry import make_run_fns
 from morefree_jax.run import RunFns, RunState, compiled_settings
@@ -202,6 +202,8 @@ class _Driver:
             for index, logger in enumerate(loggers):
                 record = {**seed_slice(values, index), **timing}
                 record.update({key: int(record[key]) for key in ("train/updates", "replay/size")})
+                if self.programs.train_updates is not None:  # the model-based learners drop non-finite ones
+                    record[DROPPED_SHARE] = 1 - record["train/updates"] / self.attempted_updates(steps)
                 records[index] = logger.log(steps, record)
         if crossed(self.settings.eval_every):
             eval_metrics, _ = self.programs.evaluate(state.agent, eval_keys(self.seeds, steps))
@@ -213,6 +215,13 @@ class _Driver:
                 self.save_back_starts(logger, seed_slice(state.back_starts, index), steps)
         self.maybe_checkpoint(checkpointers, state, previous, steps)
         return records
+
+    def attempted_updates(self, steps: int) -> int:
+        """Updates tried by env step `steps` (pretraining, then a chunk's worth per chunk); the agent state's
+        `updates` counts the kept ones, as keep_if_finite reverts it with a dropped update."""
+        per_chunk = self.programs.fns.updates_per_chunk
+        pretrain = math.ceil(self.settings.pretrain / per_chunk) * per_chunk
+        return max(pretrain + (steps - self.settings.prefill) // self.programs.fns.chunk_len * per_chunk, 1)
 
     @staticmethod
     def save_back_starts(logger: RunLogger, starts, steps: int) -> None:

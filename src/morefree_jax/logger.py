@@ -35,6 +35,8 @@ from morefree_jax.tb_events import ScalarWriter, truncate_events
 
 PROGRESS_MODES = ("auto", "bar", "lines", "off")
 PROVENANCE_FILE = "provenance.jsonl"  # one line per start or resume: step, code commit, host, time
+DROPPED_SHARE = "train/dropped_share"  # updates dropped as non-finite / updates tried, since the run began
+DROPPED_WARNING = 0.01  # a share above this is said once in the log: the learner is unstable
 
 
 def _scalar(name: str, value: Any) -> float | int | bool:
@@ -95,6 +97,8 @@ class RunLogger:
         self._last_line_time = -math.inf
         self._line_every_s = line_every_s
         self.last_success: float | None = None
+        self.last_dropped: float | None = None  # the share of updates dropped as non-finite (driver.py)
+        self._warned_dropped = False
         self._timers: dict[str, list[float]] = {}
         self._writer = None
         if tensorboard:
@@ -146,11 +150,23 @@ class RunLogger:
                     self._writer.add_scalar(name, float(value), int(step))
         if "eval/success" in record:
             self.last_success = float(record["eval/success"])
+        if DROPPED_SHARE in record:
+            self._note_dropped(float(record[DROPPED_SHARE]))
         self._show_progress(int(step), record.get("time/steps_per_s"))
         return record
 
+    def _note_dropped(self, share: float) -> None:
+        """Keeps the share for the progress line; says once when it passes DROPPED_WARNING."""
+        self.last_dropped = share
+        if share > DROPPED_WARNING and not self._warned_dropped:
+            self._warned_dropped = True
+            print(f"warning: {share:.1%} of this run's updates so far were non-finite and dropped (over "
+                  f"{DROPPED_WARNING:.0%}; train/dropped_share in {self.metrics_path})", flush=True)
+
     def _show_progress(self, step: int, steps_per_s: float | None) -> None:
         success = "-" if self.last_success is None else f"{self.last_success:.2f}"
+        if self.last_dropped is not None:
+            success += f" dropped {self.last_dropped:.1%}"
         if self._bar is not None:
             self._bar.n = step
             self._bar.set_postfix_str(f"success {success}", refresh=True)

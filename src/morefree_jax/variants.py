@@ -54,6 +54,12 @@ def variant(name: str) -> Variant:
     return VARIANTS[name]
 
 
+def paper_alpha_agents() -> list[str]:
+    """The variants whose collection and imagination use one alpha, the paper's: `alpha=` sets both."""
+    return [name for name, chosen in VARIANTS.items()
+            if chosen.schedule_kind == "back_and_forth" and chosen.collect_alpha == chosen.imagination_alpha]
+
+
 def apply_variant(config, name: str):
     """The root config (config.Config) with the variant's schedule and imagination settings.
     Planner goals are searched afresh for every planner chunk; episodic PEG makes its one goal choice per
