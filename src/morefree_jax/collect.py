@@ -23,8 +23,8 @@ Early switch threshold: `subgoal_threshold`, per task (the task's `default_confi
 A task's own success radius decides the logged `go/reached` (env.success during the go phase).
 
 Episodic PEG (`episodic=True`): the goal is chosen once per hard-reset segment, at the first chunk that
-starts in it; the go phase lasts until the segment's midpoint and the explore phase the rest, carried
-across chunks.
+starts in it; the go phase lasts until the early switch or at the latest the segment's midpoint (H_G, half
+the segment), and the explore phase the rest, carried across chunks (docs/fidelity.md).
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ Kinds (ScheduleConfig.kind):
                      otherwise one planner chunk. alpha = 0 is reset-free PEG, alpha = 1 only goes back and
                      forth. At alpha = 0.2 the share of task chunks is 2 alpha / (1 + alpha) = 1/3.
   "episodic_planner" episodic PEG: one planner goal per hard-reset segment; the segment is one chunk whose
-                     go and explore phases are each half the segment (`phase_lengths`).
+                     go phase lasts at most half the segment (H_G, `phase_lengths`; the early switch on
+                     learned distance may end it sooner) and the explore phase the rest.
   "eval_only"        goal-conditioned Dreamer: evaluation goals for the whole stream.
 
 The schedule is two pure, jittable steps so the caller can skip the goal search when the chunk does not

@@ -7,8 +7,8 @@ Every variant is the same learner; they differ only in where goals come from:
 
     morefree      Back-and-Forth Go-Explore (alpha 0.2) + the imagination mix (alpha 0.2)      [paper]
     rf_peg        reset-free PEG: a fresh planner goal every chunk, replay goals in imagination [paper 5]
-    peg           episodic PEG: one planner goal per hard-reset segment, go for the first half of
-                  the segment and explore for the second half                                   [paper 5]
+    peg           episodic PEG: one planner goal per hard-reset segment, go until the early switch
+                  (at the latest the segment's midpoint), then explore for the rest            [paper 5]
     dreamer_gc    goal-conditioned Dreamer: evaluation goals for the whole stream, no explore policy,
                   imagination goals are evaluation goals only
     mf_no_bfge    ablation: imagination mix only (collection as rf_peg)                         [paper 6]
