@@ -20,6 +20,7 @@ import envs_mjx
 from morefree_jax import driver
 from morefree_jax.baselines.baseline_config import ClassifierConfig, RNDConfig
 from morefree_jax.baselines.oracle_sac.agent import OracleSAC
+from morefree_jax.baselines.r3l.agent import R3L
 from morefree_jax.baselines.sac import rewards
 from morefree_jax.baselines.sac.buffer import Stored, init_buffer, insert_where, sample
 from morefree_jax.baselines.sac.stream import FORWARD, StreamParts
@@ -247,14 +248,48 @@ def test_r3l_alternates_forward_and_backward_segments():
     forward, backward = seed_slice(state.replay, 0)
     assert int(forward.count) + int(backward.count) == PREFILL
     assert float(backward.reward[:int(backward.count)].sum()) == 0.0  # the backward policy has no success
-    # Segments of SWITCH steps (forward ones shorter on success), alternating, forward first: 100 steps
-    # are forward 0-29, backward 30-59, forward 60-89, backward 90-99.
-    assert int(forward.count) == 2 * SWITCH or float(forward.reward.sum()) > 0
+    # Segments of SWITCH steps (R3L acts on no success), alternating, forward first: 100 steps are forward
+    # 0-29, backward 30-59, forward 60-89, backward 90-99.
+    assert int(forward.count) == 2 * SWITCH
     for buffer in (forward, backward):
         ends = np.flatnonzero(np.asarray(buffer.not_done[:int(buffer.count)]) == 0)
-        assert np.all(np.diff(np.concatenate([[-1], ends])) <= SWITCH)
+        assert np.all(np.diff(np.concatenate([[-1], ends])) == SWITCH)
     initial = np.asarray(programs.fns.env.initial_states(jax.random.PRNGKey(0)))
     assert np.allclose(backward.goal[0], initial)  # tabletop has one initial state: the backward goal
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedSuccess:
+    """The env with its success test replaced by a constant."""
+
+    inner: Any
+    value: bool
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def success(self, obs, goal):
+        return jnp.asarray(self.value)
+
+
+def test_r3l_switches_without_the_tasks_success():
+    """R3L sees no reward or success: with the env's success test always False, or always True (which would
+    end every forward segment at once were it acted on), its segments, switches and learners are the same."""
+    config = mf_config("r3l", "steps=200")
+    env = envs_mjx.make(config.run.env)
+    runs = []
+    for tested in (env, FixedSuccess(env, False), FixedSuccess(env, True)):
+        parts = StreamParts(config, tested, R3L(config.baseline, env))
+        state = jax.jit(parts.prefill)(parts.init(jax.random.PRNGKey(0)))
+        state, records = jax.jit(lambda s, parts=parts: parts.run_steps(s, 2 * SWITCH, learn=True))(state)
+        runs.append((state, records))
+    (state, records), *others = runs
+    for other_state, other_records in others:
+        for name in ("direction", "end"):
+            np.testing.assert_array_equal(records[name], other_records[name])
+        assert jax.tree.all(jax.tree.map(np.array_equal, state.agent, other_state.agent))
+    assert np.asarray(records["end"]).sum() == 2  # one segment of SWITCH steps each way
+    assert np.asarray(runs[2][1]["success"]).any()  # the always-True test was seen and not acted on
 
 
 # ---- whole runs --------------------------------------------------------------------------------------

@@ -67,6 +67,7 @@ class MEDAL:
     episodic = False
     num_buffers = 2
     keeps_task_goal = True
+    ends_on_success = True  # MEDAL sees the env reward, the task's success
     acts_in_seed_phase = True
 
     @property

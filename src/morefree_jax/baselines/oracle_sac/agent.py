@@ -32,6 +32,7 @@ class OracleSAC:
     episodic = True
     num_buffers = 1
     keeps_task_goal = False  # every episode draws its goal
+    ends_on_success = True  # MEDAL's oracle.py: an episode ends on the task's success (its reward)
     acts_in_seed_phase = False  # MEDAL's oracle.py: uniform random actions
     periodic_metrics = {}  # metrics logged every n steps: none
     demo_rows = (0,)  # leading rows per buffer that hold demonstrations

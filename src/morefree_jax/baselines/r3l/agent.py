@@ -5,12 +5,14 @@
 MoReFree's R3L, built on MEDAL's FBRL (docs/baselines.md, "R3L"): one reset-free stream; a forward SAC
 towards an evaluation goal rewarded by a VICE-style classifier of goal examples against the forward
 policy's states (no env reward), and a backward SAC with an initial state in its goal slot rewarded by RND
-novelty. Control switches every `switch_every` steps or when the forward policy reaches its goal; the
-switch step is stored with not_done = 0. Each env step updates only the acting agent (MEDAL); the
-classifier learns every `classifier.train_every` steps, the RND predictor on every backward step. Choices
-where MoReFree is silent: the classifier sees the observation alone (a goal example carries its goal in
-itself), with fresh draws of the evaluation-goal distribution as its goal examples; the backward goal
-slot holds a random initial state (FBRL's backward goal), which RND's reward ignores.
+novelty. Control switches every `switch_every` steps; the switch step is stored with not_done = 0. FBRL,
+the template, also switches when the forward policy reaches its goal, which R3L cannot see (it has no reward
+or success signal): the task's success is only counted and evaluated here (docs/fidelity.md). Each env
+step updates only the acting agent (MEDAL); the classifier learns every `classifier.train_every` steps,
+the RND predictor on every backward step. Choices where MoReFree is silent: the classifier sees the
+observation alone (a goal example carries its goal in itself), with fresh draws of the evaluation-goal
+distribution as its goal examples; the backward goal slot holds a random initial state (FBRL's backward
+goal), which RND's reward ignores.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class R3L:
     episodic = False
     num_buffers = 2
     keeps_task_goal = False  # FBRL: a fresh goal each forward segment
+    ends_on_success = False  # R3L sees no reward or success: its segments end on the time limit
     acts_in_seed_phase = True  # MEDAL's fbrl.py, R3L's template here, acts with its untrained policies
     demo_rows = (0, 0)
 

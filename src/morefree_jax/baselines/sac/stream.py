@@ -183,7 +183,10 @@ class StreamParts:
             agent, metrics = self.learner.update(agent, buffers, stream.direction, stream.steps, key_update)
         env_state = self.env.step(stream.env_state, action)
         success = self.env.success(env_state.obs, goal) & (stream.direction == FORWARD)
-        end, reset = self.segment_end(stream, success)
+        # A learner without the task's success (R3L) ends segments on the time limit alone; the success is
+        # then only counted (stream/successes) and evaluated, never acted on.
+        acted_on = success if self.learner.ends_on_success else jnp.zeros((), bool)
+        end, reset = self.segment_end(stream, acted_on)
         stored = Stored(obs, goal, action, success.astype(jnp.float32), env_state.obs, 1.0 - end)
         agent = self.learner.observe(agent, env_state.obs)
         record = {"success": success, "end": end, "direction": stream.direction, **metrics}
