@@ -54,11 +54,14 @@ CHUNK = 200  # tabletop: H_G + H_E = its 200-step evaluation episode
 
 # Small, fast settings shared by every debug run (and by the CLI runs of test_loop, so that the
 # persistent compilation cache can serve them): 10 updates per chunk, a small goal search, every
-# program compiled unoptimised (codegen=fast: compiling is most of a debug run's time).
+# program compiled unoptimised (codegen=fast: compiling is most of a debug run's time), float32 (the
+# default precision depends on the CPU; pinned, the suite computes the same on every machine, and
+# test_precision.py covers bf16).
 DEBUG_ARGS = (
     f"env={RUN_ENV}", "preset=debug", "seed=0", "prefill=20", "train_every=20", "pretrain=5",
     "planner.num_candidates=16", "planner.iterations=2", "planner.horizon=5", "eval_episodes=4",
     "log_every=100", "eval_every=200", "checkpoint_every=100", "visitation_bins=8", "codegen=fast",
+    "agent.precision=f32",
 )
 
 

@@ -149,6 +149,19 @@ def test_config_mismatch_is_refused_naming_keys(tmp_path):
         checkpoint.check_run_dir_config(tmp_path, {**CONFIG, "env": "ant"})
 
 
+def test_a_run_dir_from_before_a_config_key_existed_compares_with_the_value_it_ran_with(tmp_path):
+    """Run dirs written before agent.precision and run.update_cadence existed ran f32 and the chunk
+    cadence."""
+    old = {"run": {"env": "point_umaze"}, "agent": {"alpha": 0.2}}
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    as_run = {"run": {"env": "point_umaze", "update_cadence": "chunk"},
+              "agent": {"alpha": 0.2, "precision": "f32"}}
+    checkpoint.check_run_dir_config(tmp_path, as_run)
+    interleaved = {**as_run, "run": {"env": "point_umaze", "update_cadence": "interleaved"}}
+    with pytest.raises(checkpoint.ConfigMismatchError, match=r"run\.update_cadence: 'chunk' -> 'interl"):
+        checkpoint.check_run_dir_config(tmp_path, interleaved)
+
+
 def test_unfinished_write_is_ignored_and_cleaned(tmp_path):
     saved_run(tmp_path, [10]).close()
     partial = tmp_path / "checkpoints" / "20.orbax-checkpoint-tmp-1234567"

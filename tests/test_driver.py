@@ -94,18 +94,19 @@ def test_the_dropped_share_counts_updates_dropped_since_the_run_began(tmp_path, 
     its update counter included, stays as it was): 10 of the 30 updates tried (10 of pretraining, 10 per
     chunk) are lost, which the log says once."""
     programs, calls = debug_programs("morefree"), []
+    assert programs.fns.update_cadence == "interleaved"  # the chunk's updates run inside collect
 
     def second_chunk_dropped(state):
         calls.append(len(calls))
-        before = jax.tree.map(jnp.copy, state.agent)  # train_updates donates its input
-        new_state, metrics = programs.train_updates(state)
-        if len(calls) == 3:  # pretraining, chunk 1, chunk 2
+        before = jax.tree.map(jnp.copy, state.agent)  # collect donates its input
+        new_state, metrics = programs.collect(state)
+        if len(calls) == 2:
             updates = before.updates.astype(jnp.float32)
             new_state, metrics = new_state.replace(agent=before), {**metrics, "train/updates": updates}
         return new_state, metrics
 
     config = debug_config("morefree", f"run_dir={tmp_path}", f"steps={TWO_CHUNKS}")
-    driver.train(config, programs=programs._replace(train_updates=second_chunk_dropped), progress="lines")
+    driver.train(config, programs=programs._replace(collect=second_chunk_dropped), progress="lines")
     shares = [r["train/dropped_share"] for r in read_metrics(tmp_path / "metrics.jsonl") if "wm/loss" in r]
     assert shares == [0.0, pytest.approx(1 / 3)]
     assert capsys.readouterr().out.count("warning: 33.3% of this run's updates so far were non-finite") == 1

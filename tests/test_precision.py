@@ -23,7 +23,8 @@ from morefree_jax.registry import make_run_fns
 from tests.core_helpers import fixed_batch
 
 # sha256 (first 16 hex digits) of the jaxprs of a debug point_umaze morefree run's collect and train_updates
-# at the pinned jax and flax, made by the code before agent.precision existed (commit 8f10a47): an f32 run
+# (update_cadence=chunk, the one cadence then) at the pinned jax and flax, made by the code before
+# agent.precision existed (commit 8f10a47): an f32 run
 # traces to these same programs, so it computes the same numbers bit for bit. A change that alters the f32
 # computation on purpose updates them (and says so in its commit).
 F32_JAXPR_SHA256 = {"collect": "f56085a391c2ad03", "train_updates": "4ca335591a69abbd"}
@@ -34,8 +35,8 @@ def _jaxpr_digest(fn, *args) -> str:
 
 
 def test_an_f32_run_traces_to_the_programs_before_the_precision_option():
-    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=debug", "agent.precision=f32"],
-                            envs_mjx.ALL_ENVS)
+    config = resolve_config(["env=point_umaze", "agent=morefree", "preset=debug", "agent.precision=f32",
+                             "update_cadence=chunk"], envs_mjx.ALL_ENVS)
     fns = make_run_fns(config, envs_mjx.make("point_umaze"))
     state = jax.eval_shape(fns.init, jax.random.PRNGKey(0))
     digests = {name: _jaxpr_digest(getattr(fns, name), state) for name in F32_JAXPR_SHA256}
@@ -116,6 +117,11 @@ def test_a_resume_keeps_the_recorded_precision(tmp_path, stored):
     assert settle_precision(_config_in(tmp_path / "new")).agent.precision == precision.default_precision()
     given = settle_precision(_config_in(tmp_path, "agent.precision=f32"))
     assert given.agent.precision == "f32"  # explicit: as given (the driver then refuses a changed config)
+
+
+def test_a_run_dir_from_before_the_option_resumes_in_float32(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"agent": {"alpha": 0.2}}))
+    assert settle_precision(_config_in(tmp_path)).agent.precision == "f32"
 
 
 def test_seeds_of_a_group_with_different_precisions_are_refused(tmp_path):

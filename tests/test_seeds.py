@@ -137,8 +137,7 @@ def test_run_functions_vmap_over_two_seeds_with_one_trace():
     state = _first_updates(programs, SEEDS)
     _assert_close_to_single_seed_runs(state)
     for _ in range(2):
-        state, metrics = programs.collect(state)
-        state, _ = programs.train_updates(state)
+        state, metrics = programs.collect(state)  # the interleaved cadence: the chunk's updates included
     for name in ("init", "prefill", "collect", "train_updates"):
         assert getattr(programs, name)._cache_size() == 1, name
     assert all(np.asarray(v).shape[0] == 2 and np.isfinite(np.asarray(v)).all() for v in metrics.values())

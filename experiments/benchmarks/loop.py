@@ -138,7 +138,8 @@ def jitted_run_fns(config):
 
 def _chunk_times(agent: str, chunks: int) -> tuple[float, float, object]:
     """(fastest collect s, fastest train s, RunFns) of `chunks` chunks of a cpu-preset point_umaze run."""
-    config = resolve_config(["env=point_umaze", f"agent={agent}", "preset=cpu"], envs_mjx.ALL_ENVS)
+    config = resolve_config(["env=point_umaze", f"agent={agent}", "preset=cpu", "update_cadence=chunk"],
+                            envs_mjx.ALL_ENVS)  # the chunk cadence keeps collect and train apart
     run = jitted_run_fns(config)
     state = run.prefill(run.init(jax.random.PRNGKey(0)))
     state, _ = jax.block_until_ready(run.collect(state))  # compiles

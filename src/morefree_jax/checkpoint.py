@@ -80,6 +80,11 @@ def _as_json(tree: dict) -> dict:
     return json.loads(json.dumps(tree))
 
 
+# Keys added to the config after run dirs were written without them, with the value those runs computed
+# with: a stored config that lacks one compares as having that value.
+LEGACY_VALUES = {"agent.precision": "f32", "run.update_cadence": "chunk"}
+
+
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:
     """Dotted keys whose values differ between two nested config dicts (missing on one side counts). Both
     are compared in their JSON form (tuples and lists are equal)."""
@@ -87,7 +92,8 @@ def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()
     stored_flat = _flatten_dict(_as_json(stored))
     keys = sorted(set(stored_flat) | set(current_flat))
     absent = "<absent>"
-    return [k for k in keys if k not in ignore and stored_flat.get(k, absent) != current_flat.get(k, absent)]
+    return [k for k in keys if k not in ignore
+            and stored_flat.get(k, LEGACY_VALUES.get(k, absent)) != current_flat.get(k, absent)]
 
 
 def refuse_config_change(stored: dict, current: dict, where: str, ignore: tuple[str, ...] = ()) -> None:
@@ -96,9 +102,8 @@ def refuse_config_change(stored: dict, current: dict, where: str, ignore: tuple[
     if differing:
         current_flat, stored_flat = _flatten_dict(_as_json(current)), _flatten_dict(_as_json(stored))
         absent = "<absent>"
-        shown = ", ".join(
-            f"{k}: {stored_flat.get(k, absent)!r} -> {current_flat.get(k, absent)!r}" for k in differing[:8]
-        )
+        shown = ", ".join(f"{k}: {stored_flat.get(k, LEGACY_VALUES.get(k, absent))!r} -> "
+                          f"{current_flat.get(k, absent)!r}" for k in differing[:8])
         more = f" (+{len(differing) - 8} more)" if len(differing) > 8 else ""
         raise ConfigMismatchError(
             f"{where} was made with a different config ({shown}{more}); use a new run dir or the same config"

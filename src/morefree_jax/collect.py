@@ -289,19 +289,35 @@ def collect_chunk(env, agent, cfg: CollectConfig, planner_cfg: PlannerConfig, sc
                   agent_state, stream: StreamState, schedule, planner, key: jax.Array, goal_bounds=None):
     """One chunk of cfg.chunk_len steps -> (stream, schedule, planner, Transition (N, ...), metrics).
     goal_bounds: (low, high) (O,) box of the goal search; None = the task's observation bounds."""
+    key_goal, key_steps = jax.random.split(key)
+    stream, schedule, planner, metrics = start_chunk(env, agent, cfg, planner_cfg, schedule_cfg, agent_state,
+                                                     stream, schedule, planner, key_goal, goal_bounds)
+    stream, transitions, records = advance_steps(env, agent, cfg, agent_state, stream,
+                                                 jax.random.split(key_steps, cfg.chunk_len))
+    return stream, schedule, planner, transitions, {**metrics, **chunk_metrics(records)}
+
+
+def start_chunk(env, agent, cfg: CollectConfig, planner_cfg: PlannerConfig, schedule_cfg: ScheduleConfig,
+                agent_state, stream: StreamState, schedule, planner, key: jax.Array, goal_bounds=None):
+    """The chunk's goal and phase: (stream, schedule, planner, the goal choice's metrics). goal_bounds as
+    collect_chunk's."""
     if goal_bounds is None:
         goal_bounds = tuple(jnp.asarray(b, jnp.float32) for b in env.observation_bounds)
-    key_goal, key_steps = jax.random.split(key)
-    stream, schedule, planner, metrics = _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state,
-                                                      stream, schedule, planner, key_goal, goal_bounds)
+    return _chunk_start(env, agent, cfg, planner_cfg, schedule_cfg, agent_state, stream, schedule, planner,
+                        key, goal_bounds)
+
+
+def advance_steps(env, agent, cfg: CollectConfig, agent_state, stream: StreamState, keys: jax.Array):
+    """len(keys) steps of the stream with the learned policies of `agent_state`, in one lax.scan
+    -> (stream, Transition (N, ...), StepRecord (N, ...))."""
     act_fn, distance_fn = _policy_fns(agent, cfg, agent_state)
 
     def body(stream, key_step):
         stream, transition, record = _advance(env, agent, cfg, stream, act_fn, distance_fn, key_step)
         return stream, (transition, record)
 
-    stream, (transitions, records) = jax.lax.scan(body, stream, jax.random.split(key_steps, cfg.chunk_len))
-    return stream, schedule, planner, transitions, {**metrics, **chunk_metrics(records)}
+    stream, (transitions, records) = jax.lax.scan(body, stream, keys)
+    return stream, transitions, records
 
 
 def chunk_metrics(records: StepRecord) -> dict:

@@ -60,6 +60,10 @@ class RunConfig:
     optimisation level 0 for every program (LLVM unoptimised): they compile in about half the time, run
     more slowly (MJX physics many times slower) and round differently (docs/training.md, "Codegen").
     For short debug runs and the tests; it may not change on resume (the numbers do).
+    update_cadence: when the world-model agents' gradient updates run (docs/training.md, "Update cadence"):
+    "interleaved" (the paper's "every n steps": one update after every train_every env steps, inside the
+    chunk, so the next steps act with the updated policies and distance) or "chunk" (all of a chunk's
+    updates after it, the policies fixed within the chunk). Model-free agents update every env step anyway.
     """
 
     env: str = "point_umaze"
@@ -82,6 +86,7 @@ class RunConfig:
     checkpoint_minutes: float = 10.0
     seed_axis: Literal["auto", "map", "vmap"] = "auto"
     codegen: Literal["optimized", "fast"] = "optimized"
+    update_cadence: Literal["interleaved", "chunk"] = "interleaved"
 
     def __post_init__(self):
         if self.total_steps is not None and self.total_steps <= 0:  # None: the task's budget

@@ -187,8 +187,8 @@ class _Driver:
     def chunk(self, state: RunState, logger: RunLogger):
         with logger.timer("collect"):
             state, collect_metrics = jax.block_until_ready(self.programs.collect(state))
-        if self.programs.train_updates is None:  # model-free agents: the collect chunk trained too
-            return state, collect_metrics
+        if self.programs.train_updates is None or self.programs.fns.update_cadence == "interleaved":
+            return state, collect_metrics  # the collect chunk trained too (model-free; interleaved updates)
         with logger.timer("train"):
             state, train_metrics = jax.block_until_ready(self.programs.train_updates(state))
         return state, {**collect_metrics, **train_metrics}

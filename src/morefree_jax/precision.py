@@ -61,11 +61,12 @@ def default_precision() -> str:
 
 
 def stored_precision(run_dir) -> str | None:
-    """agent.precision in a run dir's config.json; None where there is none yet."""
+    """agent.precision in a run dir's config.json ("f32" in one written before the option: those runs
+    computed in float32, checkpoint.LEGACY_VALUES); None where there is no config.json yet."""
     path = pathlib.Path(run_dir) / "config.json"
     if not path.exists():
         return None
-    return json.loads(path.read_text()).get("agent", {}).get("precision")
+    return json.loads(path.read_text()).get("agent", {}).get("precision", "f32")
 
 
 def resolve_precision(precision: str) -> str:

@@ -20,8 +20,12 @@ import flax
 import jax
 import jax.numpy as jnp
 
+from morefree_jax.batching import lazy_cond
 from morefree_jax.learner_config import ReplayConfig
 from morefree_jax.world_model import Batch
+
+# sample_windows' draws per window: with half the starts invalid, 1 call in ~4,000 falls back to the pass.
+WINDOW_TRIES = 16
 
 
 @flax.struct.dataclass
@@ -107,13 +111,42 @@ def valid_starts(state: ReplayState, length: int) -> jax.Array:
 
 
 def sample(state: ReplayState, key: jax.Array, batch: int, length: int) -> Batch:
-    """B windows of T steps, uniform over valid windows -> Batch (B, T, ...). Needs >= 1 valid window."""
+    """B windows of T steps, uniform over valid windows -> Batch (B, T, ...). Needs >= 1 valid window.
+    O(C): one pass over the buffer, shared by every window of the call (see sample_windows)."""
+    return _windows(state, _exact_starts(state, key, batch, length), length)
+
+
+def sample_windows(state: ReplayState, key: jax.Array, batch: int, length: int) -> Batch:
+    """What `sample` draws (uniform over valid windows), in O(B T) instead of O(C): each window's start is
+    the first valid one of WINDOW_TRIES uniform draws over the buffer; only if some window finds none (a
+    hard reset every few windows, as episodic PEG's) does the call fall back to `sample`'s pass. The first
+    accepted draw is uniform over the valid windows, so the mixture is too. For one update at a time (the
+    interleaved cadence), where a pass over a 1e6 buffer per update would cost a third of the update."""
+    key_tries, key_exact = jax.random.split(key)
+    capacity = state.obs.shape[0]
+    oldest = jnp.maximum(state.count - capacity, 0)
+    candidates = jnp.maximum(state.count - length - oldest + 1, 1)
+    position = oldest + jax.random.randint(key_tries, (WINDOW_TRIES, batch), 0, candidates)
+    inner = (position[..., None] + jnp.arange(1, length)) % capacity  # a reset there would cut the window
+    valid = ~jnp.any(state.reset[inner], axis=-1)
+    start = position[jnp.argmax(valid, axis=0), jnp.arange(batch)] % capacity
+    start = lazy_cond(~jnp.all(jnp.any(valid, axis=0)),
+                      lambda: _exact_starts(state, key_exact, batch, length), lambda: start)
+    return _windows(state, start, length)
+
+
+def _exact_starts(state: ReplayState, key: jax.Array, batch: int, length: int) -> jax.Array:
+    """(B,) buffer slots, uniform over valid window starts."""
     # The k-th valid slot for k uniform in [0, #valid): a cumulative sum and a binary search, O(C + B log C).
     cumulative = jnp.cumsum(valid_starts(state, length).astype(jnp.int32))
     k = jax.random.randint(key, (batch,), 0, jnp.maximum(cumulative[-1], 1))
-    start = jnp.searchsorted(cumulative, k, side="right")
+    return jnp.searchsorted(cumulative, k, side="right")
+
+
+def _windows(state: ReplayState, start: jax.Array, length: int) -> Batch:
+    """The windows of `length` steps from buffer slots `start` (B,) -> Batch (B, T, ...)."""
     index = (start[:, None] + jnp.arange(length)[None]) % state.obs.shape[0]
-    is_first = jnp.zeros((batch, length), bool).at[:, 0].set(True)
+    is_first = jnp.zeros((start.shape[0], length), bool).at[:, 0].set(True)
     return Batch(state.obs[index], state.action[index], is_first)
 
 

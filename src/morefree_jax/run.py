@@ -28,7 +28,16 @@ from envs_mjx.normalise import NormalisedObservations
 from morefree_jax import replay as replay_lib
 from morefree_jax.agent import Agent, AgentState, EnvSpec, make_agent
 from morefree_jax.back_starts import BackStarts, init_back_starts, record_back_start
-from morefree_jax.collect import StreamState, collect_chunk, collect_config_for, init_stream, prefill_stream
+from morefree_jax.collect import (
+    StreamState,
+    advance_steps,
+    chunk_metrics,
+    collect_chunk,
+    collect_config_for,
+    init_stream,
+    prefill_stream,
+    start_chunk,
+)
 from morefree_jax.config_tree import ConfigError
 from morefree_jax.evaluate import evaluate_policy, evaluation_metrics, visitation
 from morefree_jax.goal_schedule import GOAL_TYPE_NAMES, GoalType, ScheduleState, init_schedule
@@ -43,7 +52,7 @@ GOAL_POOL_SIZE = 64  # evaluation goals / initial states sampled per chunk for t
 # (seed, run dir, step budget, cadence of logs, evaluations and checkpoints) only steer the host driver, so
 # compiled functions can be reused across them (driver.train(..., programs=...)).
 COMPILED_RUN_KEYS = ("env", "agent", "prefill", "train_every", "eval_episodes", "hard_reset_every",
-                     "subgoal_threshold", "visitation_bins", "codegen")
+                     "subgoal_threshold", "visitation_bins", "codegen", "update_cadence")
 
 
 @struct.dataclass
@@ -76,6 +85,9 @@ class RunFns(NamedTuple):
     chunk_len: int
     updates_per_chunk: int
     config: Any  # config.Config; the functions read compiled_settings(config) of it
+    # "interleaved": collect also runs the chunk's updates, one per train_every env steps (train_updates
+    # then serves the pretraining only); "chunk": train_updates runs them after collect (config.RunConfig).
+    update_cadence: str = "chunk"
 
 
 class AgentEntry(NamedTuple):
@@ -138,9 +150,15 @@ def make_run_fns(config, env, agent: Agent | None = None) -> RunFns:
     collect_cfg = collect_config_for(env, config.schedule, variant(run.agent).explore, run.subgoal_threshold,
                                      run.hard_reset_every)
     updates = max(1, round(collect_cfg.chunk_len / run.train_every))
+    interleaved = run.update_cadence == "interleaved"
+    if interleaved and collect_cfg.chunk_len % run.train_every:
+        raise ConfigError(f"run.train_every ({run.train_every}) must divide the chunk of "
+                          f"{collect_cfg.chunk_len} steps under update_cadence=interleaved; choose a divisor "
+                          "or update_cadence=chunk")
     parts = _Parts(config, env, agent, collect_cfg, updates)
-    return RunFns(parts.init, parts.prefill, parts.collect, parts.train_updates, parts.evaluate,
-                  parts.visitation, env, agent, collect_cfg.chunk_len, updates, config)
+    return RunFns(parts.init, parts.prefill, parts.collect_and_train if interleaved else parts.collect,
+                  parts.train_updates, parts.evaluate, parts.visitation, env, agent, collect_cfg.chunk_len,
+                  updates, config, run.update_cadence)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,22 +193,67 @@ class _Parts:
 
     def collect(self, state: RunState):
         key, key_chunk = jax.random.split(state.key)
-        task_box = tuple(jnp.asarray(b, jnp.float32) for b in self.env.observation_bounds)
-        goal_bounds = replay_lib.visited_range(state.replay, *task_box)  # candidates inside visited states
         stream, schedule, planner, transitions, metrics = collect_chunk(
             self.env, self.agent, self.collect_cfg, self.config.planner, self.config.schedule, state.agent,
-            state.stream, state.schedule, state.planner, key_chunk, goal_bounds)
-        goal_type = jax.nn.one_hot(metrics["goal/type"], 3)
-        go_counts = state.go_counts + jnp.stack([goal_type, goal_type * metrics["go/reached"]])
-        rates = go_counts[1] / jnp.maximum(go_counts[0], 1.0)
-        metrics.update({f"go/reach_rate_{name}": rates[i] for i, name in enumerate(GOAL_TYPE_NAMES)})
-        metrics["planner/searches"] = planner.searches.astype(jnp.float32)
-        successful_back = (metrics["goal/type"] == GoalType.INITIAL) & (metrics["go/reached"] > 0)
+            state.stream, state.schedule, state.planner, key_chunk, self.goal_bounds(state.replay))
+        go_counts, successful_back = self.go_summary(state, metrics, planner)
         back_starts = record_back_start(state.back_starts, self.env, state.replay, successful_back)
         state = state.replace(replay=replay_lib.add(state.replay, *transitions), stream=stream,
                               schedule=schedule, planner=planner, go_counts=go_counts, key=key,
                               back_starts=back_starts)
         return state, metrics
+
+    def collect_and_train(self, state: RunState):
+        """The interleaved cadence: one chunk whose env steps run in blocks of train_every, each followed by
+        one update on a batch drawn from the replay as it then stands (the block included), so every step
+        acts, and ends its go phase, with the policies and distance of all updates before it."""
+        key, key_goal, key_steps, key_updates, key_eval, key_initial = jax.random.split(state.key, 6)
+        stream, schedule, planner, metrics = start_chunk(
+            self.env, self.agent, self.collect_cfg, self.config.planner, self.config.schedule, state.agent,
+            state.stream, state.schedule, state.planner, key_goal, self.goal_bounds(state.replay))
+        pools, num, replay_cfg = self.goal_pools(key_eval, key_initial), self.updates_per_chunk, \
+            self.config.agent.replay
+        step_keys = jax.random.split(key_steps, self.collect_cfg.chunk_len)
+        step_keys = step_keys.reshape(num, -1, *step_keys.shape[1:])  # (updates, train_every, key)
+
+        def block(carry, keys):
+            agent_state, stream, replay = carry
+            block_keys, key_batch, key_update = keys
+            stream, transitions, records = advance_steps(self.env, self.agent, self.collect_cfg, agent_state,
+                                                         stream, block_keys)
+            replay = replay_lib.add(replay, *transitions)
+            batch = replay_lib.sample_windows(replay, key_batch, replay_cfg.batch, replay_cfg.length)
+            new_state, update_metrics = self.agent.train_step(agent_state, batch, pools, key_update)
+            new_state, finite = keep_if_finite(new_state, agent_state)
+            return (new_state, stream, replay), (records, update_metrics, finite)
+
+        update_keys = jax.random.split(key_updates, 2 * num).reshape(2, num, -1)
+        (agent_state, stream, replay), (records, update_metrics, finite) = jax.lax.scan(
+            block, (state.agent, stream, state.replay), (step_keys, *update_keys))
+        metrics.update(chunk_metrics(jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), records)))
+        go_counts, successful_back = self.go_summary(state, metrics, planner)
+        # The 100 locations before the chunk are still in the buffer, just before the chunk's steps.
+        before = replay.replace(count=replay.count - self.collect_cfg.chunk_len)
+        back_starts = record_back_start(state.back_starts, self.env, before, successful_back)
+        metrics.update(self.update_means(update_metrics, finite, agent_state, replay))
+        return state.replace(agent=agent_state, replay=replay, stream=stream, schedule=schedule,
+                             planner=planner, go_counts=go_counts, key=key, back_starts=back_starts), metrics
+
+    def goal_bounds(self, replay):
+        """The goal search's box: the task's bounds within the visited states' range (candidates inside
+        states the stream has been in)."""
+        task_box = tuple(jnp.asarray(b, jnp.float32) for b in self.env.observation_bounds)
+        return replay_lib.visited_range(replay, *task_box)
+
+    def go_summary(self, state: RunState, metrics: dict, planner):
+        """(go_counts, successful back chunk?) after a chunk; adds the reach rates and the search count to
+        `metrics`."""
+        goal_type = jax.nn.one_hot(metrics["goal/type"], 3)
+        go_counts = state.go_counts + jnp.stack([goal_type, goal_type * metrics["go/reached"]])
+        rates = go_counts[1] / jnp.maximum(go_counts[0], 1.0)
+        metrics.update({f"go/reach_rate_{name}": rates[i] for i, name in enumerate(GOAL_TYPE_NAMES)})
+        metrics["planner/searches"] = planner.searches.astype(jnp.float32)
+        return go_counts, (metrics["goal/type"] == GoalType.INITIAL) & (metrics["go/reached"] > 0)
 
     def goal_pools(self, key_eval, key_initial) -> GoalPools:
         return GoalPools(jax.vmap(self.env.eval_goals)(jax.random.split(key_eval, GOAL_POOL_SIZE)),
@@ -214,12 +277,18 @@ class _Parts:
 
         agent_state, (metrics, finite) = jax.lax.scan(update, state.agent,
                                                       (batches, jax.random.split(key_steps, num)))
+        return state.replace(agent=agent_state, key=key), self.update_means(metrics, finite, agent_state,
+                                                                             state.replay)
+
+    @staticmethod
+    def update_means(metrics: dict, finite, agent_state: AgentState, replay) -> dict:
+        """The updates' metrics averaged over the kept ones, with the dropped count and the totals."""
         kept = jnp.maximum(jnp.sum(finite), 1)
         means = {name: jnp.sum(jnp.where(finite, value, 0.0)) / kept for name, value in metrics.items()}
         means["train/skipped_nonfinite"] = jnp.sum(~finite).astype(jnp.float32)
         means["train/updates"] = agent_state.updates.astype(jnp.float32)
-        means["replay/size"] = state.replay.count.astype(jnp.float32)
-        return state.replace(agent=agent_state, key=key), means
+        means["replay/size"] = replay.count.astype(jnp.float32)
+        return means
 
     def evaluate(self, agent_state: AgentState, key):
         result = evaluate_policy(self.env, self.agent, agent_state, key, self.config.run.eval_episodes)
