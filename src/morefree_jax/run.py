@@ -4,8 +4,10 @@
     env = envs_mjx.make("point_umaze")            # any ResetFreeEnv (a notebook may bring its own)
     fns = make_run_fns(config, env)                # config from config.resolve_config
     state = fns.prefill(fns.init(key))             # RunState: agent, replay, stream, planner, schedule, key
-    state, metrics = fns.collect(state)            # one chunk of the stream (goal choice incl. PEG's search)
-    state, metrics = fns.train_updates(state)      # the chunk's gradient updates in one lax.scan
+    state, metrics = fns.collect(state)            # one chunk of the stream (goal choice incl. PEG's search),
+                                                   # with an update every train_every steps (interleaved)
+    state, metrics = fns.train_updates(state)      # a chunk's worth of updates in one lax.scan: the
+                                                   # pretraining, and the updates under update_cadence=chunk
     metrics, result = fns.evaluate(state.agent, key)
     views = fns.visitation(state.replay)           # evaluate.visitation: task-relevant share, heatmaps
 
