@@ -59,7 +59,7 @@ def test_curve_is_the_mean_and_standard_error_over_seeds(runs):
     assert stderr[-1] == pytest.approx(np.std(last, ddof=1) / math.sqrt(3))
 
 
-def test_an_alpha_sweeps_runs_are_separate_groups_filtered_by_their_agent(runs):
+def test_runs_set_apart_by_alpha_precision_or_cadence_are_separate_groups_filtered_by_agent(runs):
     for alpha in (0.5, 0.7):
         run_dir = runs / "point_umaze" / f"alpha{alpha}" / "seed0"
         write_run(run_dir, "point_umaze", "morefree", 0, [0.0, 0.1, alpha])
@@ -71,6 +71,10 @@ def test_an_alpha_sweeps_runs_are_separate_groups_filtered_by_their_agent(runs):
     assert sorted(groups) == [("point_umaze", "morefree"), ("point_umaze", "morefree alpha=0.5"),
                               ("point_umaze", "morefree schedule.alpha=0.7 agent.alpha=0.2")]
     assert [run.seed for run in groups[("point_umaze", "morefree")]] == [0, 1, 2]  # the defaults' group
+    chunk_bf16 = {"run": {"agent": "morefree", "update_cadence": "chunk"}, "agent": {"precision": "bf16"}}
+    assert run_groups.agent_label(chunk_bf16) == "morefree cadence=chunk precision=bf16"
+    assert run_groups.agent_label({"run": {"agent": "morefree", "update_cadence": "interleaved"},
+                                   "agent": {"precision": "f32", "alpha": 0.2}}) == "morefree"
 
 
 def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):

@@ -106,7 +106,8 @@ def test_auto_resolves_to_a_concrete_precision_and_bad_values_name_the_valid_one
 
 
 def _config_in(run_dir, *extra):
-    arguments = ["env=point_umaze", "preset=debug", f"run_dir={run_dir}", *extra]
+    chosen = [] if any(a.startswith("agent.precision=") for a in extra) else ["agent.precision=auto"]
+    arguments = ["env=point_umaze", "preset=debug", f"run_dir={run_dir}", *chosen, *extra]
     return resolve_config(arguments, envs_mjx.ALL_ENVS)
 
 
@@ -117,6 +118,10 @@ def test_a_resume_keeps_the_recorded_precision(tmp_path, stored):
     assert settle_precision(_config_in(tmp_path / "new")).agent.precision == precision.default_precision()
     given = settle_precision(_config_in(tmp_path, "agent.precision=f32"))
     assert given.agent.precision == "f32"  # explicit: as given (the driver then refuses a changed config)
+
+
+def test_the_default_is_float32():
+    assert resolve_config(["env=point_umaze"], envs_mjx.ALL_ENVS).agent.precision == "f32"
 
 
 def test_a_run_dir_from_before_the_option_resumes_in_float32(tmp_path):

@@ -60,19 +60,23 @@ def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
 
 
 def agent_label(config: dict) -> str:
-    """The agent's name, plus its alpha where the run set it away from the variant's (an alpha sweep's
-    runs are separate groups): "morefree alpha=0.5", or both keys when they differ."""
-    agent = config["run"]["agent"]
-    if agent not in variants.VARIANTS:
-        return agent
-    chosen = variants.VARIANTS[agent]
-    collect = config.get("schedule", {}).get("alpha", chosen.collect_alpha)
-    imagine = config.get("agent", {}).get("alpha", chosen.imagination_alpha)
-    if (collect, imagine) == (chosen.collect_alpha, chosen.imagination_alpha):
-        return agent
-    if collect == imagine:
-        return f"{agent} alpha={collect:g}"
-    return f"{agent} schedule.alpha={collect:g} agent.alpha={imagine:g}"
+    """The agent's name, plus what the run set away from its defaults that splits a comparison: its alpha
+    (an alpha sweep: "morefree alpha=0.5", or both keys when they differ), a bf16 learner, the chunk update
+    cadence ("morefree precision=bf16 cadence=chunk"). Keys a config.json lacks (older run dirs) add
+    nothing."""
+    agent, extras = config["run"]["agent"], []
+    if agent in variants.VARIANTS:
+        chosen = variants.VARIANTS[agent]
+        collect = config.get("schedule", {}).get("alpha", chosen.collect_alpha)
+        imagine = config.get("agent", {}).get("alpha", chosen.imagination_alpha)
+        if (collect, imagine) != (chosen.collect_alpha, chosen.imagination_alpha):
+            extras += ([f"alpha={collect:g}"] if collect == imagine
+                       else [f"schedule.alpha={collect:g}", f"agent.alpha={imagine:g}"])
+        if config["run"].get("update_cadence", "interleaved") != "interleaved":
+            extras.append(f"cadence={config['run']['update_cadence']}")
+    if config.get("agent", {}).get("precision", "f32") != "f32":
+        extras.append(f"precision={config['agent']['precision']}")
+    return " ".join([agent, *extras])
 
 
 def read_run(run_dir: pathlib.Path) -> RunRecord:

@@ -148,9 +148,10 @@ class AgentConfig:
     # for block stacking; the Fetch tasks, which take that config, turn it on.
     normalise_observations: bool = False
     # Matmul inputs in bfloat16 with float32 accumulation ("bf16") or float32 throughout ("f32"); "auto": the
-    # faster on the machine the run starts on (precision.py; docs/learner.md, "Precision"). A run dir records
-    # the concrete choice and a resume keeps it.
-    precision: str = "auto"
+    # faster on the machine the run starts on (precision.py), the concrete choice recorded in the run dir and
+    # kept on resume. Default f32: bf16 runs are faster but have not yet been shown to learn as well
+    # (docs/learner.md, "Precision").
+    precision: str = "f32"
 
     def __post_init__(self):
         check_precision(self.precision, PRECISION_CHOICES)
