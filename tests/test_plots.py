@@ -21,7 +21,8 @@ STEPS = (2500, 5000, 7500)
 
 def write_run(run_dir, task, agent, seed, successes, commit="a" * 40, back_starts=False):
     (run_dir / "plots").mkdir(parents=True)
-    (run_dir / "config.json").write_text(json.dumps({"run": {"env": task, "agent": agent, "seed": seed}}))
+    run = {"env": task, "agent": agent, "seed": seed, "update_cadence": "interleaved"}
+    (run_dir / "config.json").write_text(json.dumps({"run": run}))
     (run_dir / "provenance.jsonl").write_text(json.dumps({"start_step": 0, "commit": commit, "dirty": False})
                                               + "\n")
     lines = []
@@ -75,6 +76,8 @@ def test_runs_set_apart_by_alpha_precision_or_cadence_are_separate_groups_filter
     assert run_groups.agent_label(chunk_bf16) == "morefree cadence=chunk precision=bf16"
     assert run_groups.agent_label({"run": {"agent": "morefree", "update_cadence": "interleaved"},
                                    "agent": {"precision": "f32", "alpha": 0.2}}) == "morefree"
+    assert run_groups.agent_label({"run": {"agent": "morefree"}}) == "morefree cadence=chunk"  # an older dir
+    assert run_groups.agent_label({"run": {"agent": "oracle_sac"}}) == "oracle_sac"
 
 
 def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):

@@ -65,6 +65,8 @@ def test_modes_set_their_xla_flags():
     assert runtime.YNN_OFF in flags["large"] and runtime.YNN_OFF not in flags["standard"]
     assert runtime.IN_PLACE_LOOPS in flags["large"] and runtime.IN_PLACE_LOOPS in flags["standard"]
     assert flags["default"] == ""
+    bf16 = code.replace("runtime.configure()", "runtime.configure(precision='bf16')")
+    assert runtime.YNN_OFF not in _last_json(_python(bf16, "large"))  # bf16 dots keep YNNPACK's kernels
 
 
 def test_flags_are_not_touched_once_jax_has_started():

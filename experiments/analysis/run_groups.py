@@ -17,6 +17,7 @@ import pathlib
 import numpy as np
 
 from morefree_jax import variants
+from morefree_jax.legacy import stored_value
 from morefree_jax.logger import DROPPED_SHARE, PROVENANCE_FILE, read_metrics
 
 
@@ -61,9 +62,9 @@ def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
 
 def agent_label(config: dict) -> str:
     """The agent's name, plus what the run set away from its defaults that splits a comparison: its alpha
-    (an alpha sweep: "morefree alpha=0.5", or both keys when they differ), a bf16 learner, the chunk update
-    cadence ("morefree precision=bf16 cadence=chunk"). Keys a config.json lacks (older run dirs) add
-    nothing."""
+    (an alpha sweep: "morefree alpha=0.5", or both keys when they differ), the chunk update cadence, a bf16
+    learner ("morefree cadence=chunk precision=bf16"). A key a config.json lacks (an older run dir) reads
+    as the value that run computed with (legacy.py)."""
     agent, extras = config["run"]["agent"], []
     if agent in variants.VARIANTS:
         chosen = variants.VARIANTS[agent]
@@ -72,10 +73,10 @@ def agent_label(config: dict) -> str:
         if (collect, imagine) != (chosen.collect_alpha, chosen.imagination_alpha):
             extras += ([f"alpha={collect:g}"] if collect == imagine
                        else [f"schedule.alpha={collect:g}", f"agent.alpha={imagine:g}"])
-        if config["run"].get("update_cadence", "interleaved") != "interleaved":
-            extras.append(f"cadence={config['run']['update_cadence']}")
-    if config.get("agent", {}).get("precision", "f32") != "f32":
-        extras.append(f"precision={config['agent']['precision']}")
+        if stored_value(config, "run.update_cadence") != "interleaved":
+            extras.append(f"cadence={stored_value(config, 'run.update_cadence')}")
+    if stored_value(config, "agent.precision") != "f32":
+        extras.append(f"precision={stored_value(config, 'agent.precision')}")
     return " ".join([agent, *extras])
 
 

@@ -34,6 +34,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from morefree_jax.legacy import LEGACY_VALUES
+
 FILE_MANIFEST = "files.json"
 QUARANTINE_DIR = "checkpoints_bad"
 
@@ -78,11 +80,6 @@ def _flatten_dict(tree: dict, prefix: str = "") -> dict:
 
 def _as_json(tree: dict) -> dict:
     return json.loads(json.dumps(tree))
-
-
-# Keys added to the config after run dirs were written without them, with the value those runs computed
-# with: a stored config that lacks one compares as having that value.
-LEGACY_VALUES = {"agent.precision": "f32", "run.update_cadence": "chunk"}
 
 
 def config_differences(stored: dict, current: dict, ignore: tuple[str, ...] = ()) -> list[str]:

@@ -23,6 +23,8 @@ import pathlib
 import jax
 import jax.numpy as jnp
 
+from morefree_jax.legacy import stored_value
+
 PRECISIONS = ("f32", "bf16")
 CHOICES = ("auto", *PRECISIONS)  # "auto": default_precision() of the machine the run starts on
 BF16_CPU_FLAGS = (" avx512_bf16", " amx_bf16")  # /proc/cpuinfo flags of CPUs with bfloat16 dot products
@@ -62,11 +64,11 @@ def default_precision() -> str:
 
 def stored_precision(run_dir) -> str | None:
     """agent.precision in a run dir's config.json ("f32" in one written before the option: those runs
-    computed in float32, checkpoint.LEGACY_VALUES); None where there is no config.json yet."""
+    computed in float32: legacy.py); None where there is no config.json yet."""
     path = pathlib.Path(run_dir) / "config.json"
     if not path.exists():
         return None
-    return json.loads(path.read_text()).get("agent", {}).get("precision", "f32")
+    return stored_value(json.loads(path.read_text()), "agent.precision")
 
 
 def resolve_precision(precision: str) -> str:

@@ -137,9 +137,10 @@ def _checked(mode: str) -> str:
 _applied: dict | None = None  # what configure() applied in this process (None: not called)
 
 
-def configure(mode: str | None = None, precision: str = "auto") -> dict:
+def configure(mode: str | None = None, precision: str = "f32") -> dict:
     """Applies the settings of `mode` (default: $MOREFREE_JAX_RUNTIME or standard) -> what was applied.
-    precision: the learner's agent.precision (precision.py), which decides `large`'s dot emitter.
+    precision: the learner's agent.precision (precision.py; f32, its default), which decides `large`'s dot
+    emitter.
     Call it before the first JAX computation (XLA reads its flags when its backend starts); a second call
     returns the first call's settings."""
     global _applied
