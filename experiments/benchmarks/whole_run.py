@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 import envs_mjx
+from experiments.benchmarks.seeds import _timed
 from experiments.cli import parse_keys
 from morefree_jax import replay as replay_lib
 from morefree_jax.checkpoint import RunCheckpointer
@@ -53,12 +54,6 @@ PARTS = ("collect", "search", "train", "collect+train", "host", "evaluate", "che
 
 def _row(name, value, unit, note=""):
     return {"section": SECTION, "name": name, "value": float(value), "unit": unit, "note": note}
-
-
-def _timed(fn, *args):
-    start = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - start
 
 
 def _chunks(programs, state, chunks: int):

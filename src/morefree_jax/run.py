@@ -213,8 +213,8 @@ class _Parts:
         stream, schedule, planner, metrics = start_chunk(
             self.env, self.agent, self.collect_cfg, self.config.planner, self.config.schedule, state.agent,
             state.stream, state.schedule, state.planner, key_goal, self.goal_bounds(state.replay))
-        pools, num, replay_cfg = self.goal_pools(key_eval, key_initial), self.updates_per_chunk, \
-            self.config.agent.replay
+        pools = self.goal_pools(key_eval, key_initial)
+        num, replay_cfg = self.updates_per_chunk, self.config.agent.replay
         step_keys = jax.random.split(key_steps, self.collect_cfg.chunk_len)
         step_keys = step_keys.reshape(num, -1, *step_keys.shape[1:])  # (updates, train_every, key)
 
