@@ -21,13 +21,15 @@ ALLOC_ENV = $(shell $(PY) -c "import morefree_jax.runtime as r; r.print_allocato
 TASK ?=
 AGENTS ?= morefree,rf_peg
 DEFAULT_SEEDS := 0,1,2
-RUNS ?= runs
+# make plots reads runs/ where it exists, else the committed run records (a fresh clone redraws results/).
+RUNS ?= $(if $(wildcard runs),runs,results/data)
+DATA ?= results/data
 OUT ?= results
 MARKS ?=
 WINDOW ?=
 PLOT_AGENTS ?=
 
-.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment plots demos
+.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment plots records demos
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
 CUDA ?=
@@ -70,6 +72,10 @@ plots:
 	PYTHONPATH=src:. $(PY) -m experiments.plots runs=$(RUNS) out=$(OUT) $(if $(TASK),task=$(TASK)) \
 		$(if $(MARKS),marks=$(MARKS)) $(if $(WINDOW),window=$(WINDOW)) \
 		$(if $(PLOT_AGENTS),agents=$(PLOT_AGENTS))
+
+# The run records of every run dir below RUNS (results/data/<task>/<group>/seed<k>.jsonl + .npz): commit them.
+records:
+	PYTHONPATH=src:. $(PY) -m experiments.records runs=$(RUNS) out=$(DATA)
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate_checkpoint run_dir=$(RUN_DIR) $(ARGS)

@@ -21,8 +21,10 @@ agents'), groups them by task and agent, and writes to out=, per task (PNG and S
 and <task>_results.csv / .md: success at step marks (default: 4 evenly spaced evaluated steps; each agent at
 its latest evaluation at or before a mark) per task and agent, mean +- standard error over seeds, seed count,
 and the commits of the code that wrote the runs.
-With window=START:STOP also <task>_window.csv / .md: each seed's mean success over its evaluations in
-that range, mean +- standard error over seeds (agents whose every seed has evaluated at STOP).
+and <task>_window.csv / .md, the results table of the paper's protocol: each seed's mean success over its
+evaluations in a window of steps, mean +- standard error over seeds, and the task-relevant share at its end
+(agents whose every seed has evaluated at its end); window=START:STOP, by default each task's last quarter
+of the steps every agent reached.
 Across tasks, where morefree and at least one ablation variant (rf_peg, mf_task_only, mf_no_bfge,
 mf_no_imag) ran: ablation.png / .svg / .csv / .md, the paper's ablation figure (final success normalised by
 MoReFree's, mean over tasks; experiments/analysis/ablation_summary.py says how). The drawing code is
@@ -83,8 +85,9 @@ def main(argv: list[str]) -> int:
     for task in tasks:
         written += write_task(task, groups, out, stamp_for, args["visitation_step"])
         written += write_table(task, groups, out, args["marks"], stamp_for)
-        if args["window"]:
-            written += write_window(task, groups, out, args["window"], stamp_for)
+        window = args["window"] or run_groups.last_quarter(groups, task)
+        if window:
+            written += write_window(task, groups, out, window, stamp_for)
     written += write_ablation(groups, out, stamp_for)
     for (task, agent), group in sorted(groups.items()):
         print(f"{task} {agent}: seeds {','.join(str(r.seed) for r in group)}")

@@ -12,41 +12,13 @@ import numpy as np
 import pytest
 
 from experiments import plots
-from experiments.analysis import figures, run_groups
-
-SUCCESS = {("morefree", 0): [0.0, 0.5, 1.0], ("morefree", 1): [0.0, 0.3, 0.8],
-           ("morefree", 2): [0.2, 0.4, 0.6], ("rf_peg", 0): [0.0, 0.1, 0.2], ("rf_peg", 1): [0.0, 0.3, 0.4]}
-STEPS = (2500, 5000, 7500)
-
-
-def write_run(run_dir, task, agent, seed, successes, commit="a" * 40, back_starts=False):
-    (run_dir / "plots").mkdir(parents=True)
-    run = {"env": task, "agent": agent, "seed": seed, "update_cadence": "interleaved"}
-    (run_dir / "config.json").write_text(json.dumps({"run": run}))
-    (run_dir / "provenance.jsonl").write_text(json.dumps({"start_step": 0, "commit": commit, "dirty": False})
-                                              + "\n")
-    lines = []
-    for step, success in zip(STEPS, successes, strict=True):
-        lines.append({"step": step, "wm/loss": 1.0, "train/dropped_share": 0.002 * seed})
-        lines.append({"step": step, "eval/success": success, "eval/final_success": success / 2})
-        lines.append({"step": step, "visitation/task_relevant": 0.1 * seed})
-        histogram = np.zeros((50, 50))
-        histogram[10 + seed, 20] = step
-        np.save(run_dir / "plots" / f"visitation_{step:09d}.npy", histogram)
-    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
-    if back_starts:
-        xy = np.random.default_rng(seed).uniform(-1, 9, (3, 100, 2)).astype(np.float32)
-        xy[0, :10] = np.nan  # before the stream started
-        np.savez(run_dir / "plots" / "back_starts.npz", xy=xy, stream_step=np.arange(3), step=np.int64(7500))
+from experiments.analysis import figures, run_groups, run_record
+from tests.plot_helpers import STEPS, SUCCESS, write_run, write_runs
 
 
 @pytest.fixture
 def runs(tmp_path):
-    root = tmp_path / "runs"
-    for (agent, seed), successes in SUCCESS.items():
-        write_run(root / "point_umaze" / agent / f"seed{seed}", "point_umaze", agent, seed, successes,
-                  back_starts=agent == "morefree")
-    return root
+    return write_runs(tmp_path / "runs")
 
 
 def test_curve_is_the_mean_and_standard_error_over_seeds(runs):
@@ -73,11 +45,11 @@ def test_runs_set_apart_by_alpha_precision_or_cadence_are_separate_groups_filter
                               ("point_umaze", "morefree schedule.alpha=0.7 agent.alpha=0.2")]
     assert [run.seed for run in groups[("point_umaze", "morefree")]] == [0, 1, 2]  # the defaults' group
     chunk_bf16 = {"run": {"agent": "morefree", "update_cadence": "chunk"}, "agent": {"precision": "bf16"}}
-    assert run_groups.agent_label(chunk_bf16) == "morefree cadence=chunk precision=bf16"
-    assert run_groups.agent_label({"run": {"agent": "morefree", "update_cadence": "interleaved"},
+    assert run_record.agent_label(chunk_bf16) == "morefree cadence=chunk precision=bf16"
+    assert run_record.agent_label({"run": {"agent": "morefree", "update_cadence": "interleaved"},
                                    "agent": {"precision": "f32", "alpha": 0.2}}) == "morefree"
-    assert run_groups.agent_label({"run": {"agent": "morefree"}}) == "morefree cadence=chunk"  # an older dir
-    assert run_groups.agent_label({"run": {"agent": "oracle_sac"}}) == "oracle_sac"
+    assert run_record.agent_label({"run": {"agent": "morefree"}}) == "morefree cadence=chunk"  # an older dir
+    assert run_record.agent_label({"run": {"agent": "oracle_sac"}}) == "oracle_sac"
 
 
 def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
@@ -209,9 +181,23 @@ def test_window_table_averages_each_seed_over_its_evaluations_first(runs, tmp_pa
     assert float(rows["rf_peg"]["final_success_mean"]) == pytest.approx(np.mean([0.075, 0.175]), abs=1e-4)
     table = (out / "point_umaze_window.md").read_text()
     assert "| point_umaze | morefree | 3 | 5,000-7,500 | 2 | 0.60 ± 0.08 |" in table
+    assert "| 10.0% ± 5.8 | aaaaaaa |" in table  # task-relevant at 7,500: 0, 0.1, 0.2 over the seeds
     # A window past the runs' last evaluation has no rows.
     assert plots.main([f"runs={runs}", f"out={out}", "window=5000:10000"]) == 0
     assert (out / "point_umaze_window.csv").read_text().count("\n") == 1
+
+
+
+def test_without_a_window_each_task_gets_the_last_quarter_every_agent_reached(runs, tmp_path):
+    write_run(runs / "tabletop" / "morefree" / "seed0", "tabletop", "morefree", 0, [0.0, 0.5, 1.0])
+    groups = run_groups.group_runs(run_groups.find_runs(runs)[0])
+    assert run_groups.last_quarter(groups, "point_umaze") == (5625, 7500)
+    out = tmp_path / "results"
+    assert plots.main([f"runs={runs}", f"out={out}"]) == 0
+    with open(out / "tabletop_window.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert [(r["agent"], r["start"], r["stop"], r["evaluations"]) for r in rows] == [
+        ("morefree", "5625", "7500", "1")]
 
 
 @pytest.mark.parametrize("window", ["5000", "a:b", "7500:5000"])
@@ -233,8 +219,9 @@ def test_visitation_shows_each_agent_at_its_latest_step_or_at_the_cap(runs):
     geometry = figures.TaskGeometry("point_umaze")
     fig, steps = figures.visitation_figure("point_umaze", groups, geometry)
     assert steps == {"ibc": 2800, "morefree": 7500, "rf_peg": 7500}  # ibc: the latest both seeds saved
-    assert [ax.get_title().splitlines()[1] for ax in fig.axes] == [
-        "(2 seeds, step 2,800)", "(3 seeds, step 7,500)", "(2 seeds, step 7,500)"]
+    assert [ax.get_title().splitlines()[1:] for ax in figures.heatmap_panels(fig)] == [
+        ["task-relevant -", "2 seeds, step 2,800"], ["task-relevant 10.0%", "3 seeds, step 7,500"],
+        ["task-relevant 5.0%", "2 seeds, step 7,500"]]
     _, capped = figures.visitation_figure("point_umaze", groups, geometry, cap=5000)
     assert capped == {"ibc": 2800, "morefree": 5000, "rf_peg": 5000}
     assert figures.visitation_figure("point_umaze", groups, geometry, cap=1000) == (None, {})
@@ -251,9 +238,13 @@ def test_heatmap_titles_and_labels_stay_inside_the_figure(runs, extra_agents):
     assert len(steps) == 2 + len(extra_agents)
     FigureCanvasAgg(fig).draw()
     width, height = fig.get_size_inches() * fig.dpi
-    for ax in fig.axes:
+    for ax in fig.axes:  # the panels and the colour bar
         box = ax.get_tightbbox()  # the panel with its title, tick labels and axis labels
         assert box.x0 >= 0 and box.y0 >= 0 and box.x1 <= width and box.y1 <= height, (ax.get_title(), box)
+    legend = fig.legends[0].get_window_extent()
+    assert legend.x0 >= 0 and legend.y0 >= 0 and legend.x1 <= width and legend.y1 <= height
+    assert not any(legend.overlaps(ax.get_window_extent()) for ax in fig.axes)  # it covers no data
+    assert [text.get_text() for text in fig.legends[0].get_texts()] == ["task-relevant", "start", "goal"]
 
 
 def test_agents_option_draws_only_those_agents(runs, tmp_path, capsys):
@@ -288,7 +279,8 @@ def test_pick_place_hard_gets_the_side_view_with_its_in_air_share(tmp_path):
     geometry = figures.TaskGeometry("pick_place_hard")
     fig, steps = figures.visitation_figure("pick_place_hard", groups, geometry, view=figures.SIDE_VIEW)
     assert steps == {"morefree": STEPS[-1]}
-    assert fig.axes[0].get_title().splitlines()[0] == "morefree: in the air 37.5%"
+    title = fig.axes[0].get_title().splitlines()
+    assert title == ["morefree", "in the air 37.5%", f"2 seeds, step {STEPS[-1]:,}"]
     # the side view's box is the block's x and height, with the air line inside it
     low_x, high_x, low_z, high_z = geometry.extents["xz"]
     assert low_x < 1.43 < high_x and low_z < geometry.air_height < high_z

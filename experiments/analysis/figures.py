@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from experiments.analysis import ablation_summary, run_groups
+from experiments.analysis.task_geometry import TaskGeometry
 
 CURVES = (("success", "eval/success", run_groups.SUCCESS_ANY),
           ("final_success", "eval/final_success", run_groups.SUCCESS_LAST),
@@ -55,7 +56,7 @@ def add_stamp(fig, stamp: str):
         return text.get_window_extent(renderer).width <= width
 
     text.set_text("\n".join(_stamp_lines(stamp, fits)))
-    strip = max(STAMP_STRIP, (text.get_window_extent(renderer).height + 4) / fig.bbox.height)
+    strip = max(STAMP_STRIP, (text.get_window_extent(renderer).height + 8) / fig.bbox.height)
     fig.get_layout_engine().set(rect=(0, strip, 1, 1 - strip))
     return text
 
@@ -66,7 +67,10 @@ def save(fig, out: pathlib.Path, name: str, stamp: str) -> list[pathlib.Path]:
     add_stamp(fig, stamp)
     paths = [out / f"{name}.png", out / f"{name}.svg"]
     fig.savefig(paths[0], dpi=120, metadata={"Description": stamp, "Software": None})
-    fig.savefig(paths[1], metadata={"Description": stamp, "Date": None})
+    import matplotlib
+
+    with matplotlib.rc_context({"svg.hashsalt": "morefree-jax"}):  # ids from the content, not at random
+        fig.savefig(paths[1], metadata={"Description": stamp, "Date": None})
     return paths
 
 
@@ -84,49 +88,23 @@ def curve_figure(task, groups, key, label):
             axes.fill_between(steps, mean - stderr, mean + stderr, color=line.get_color(), alpha=0.2)
     axes.set(xlabel="env steps", ylabel=label, title=f"{task}: {label}, mean ± standard error")
     axes.grid(alpha=0.3)
-    axes.legend(loc="best", fontsize=8)
+    legend_below(fig, *axes.get_legend_handles_labels(), fontsize=8)
     return fig
 
 
-class TaskGeometry:
-    """The task's xy box, samples of its start and goal regions, and walls to draw (PointUMaze); for tasks
-    with a side view (envs_mjx.base: side_view_dims) its box, the samples in it and the air height."""
+def legend_below(fig, handles, labels, fontsize):
+    """The legend under the axes, where it covers no data, in as many columns (at most 3) as the figure's
+    width holds."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    def __init__(self, task: str, samples: int = 200):
-        import jax
-
-        import envs_mjx
-
-        env = envs_mjx.make(task)
-        keys = jax.random.split(jax.random.PRNGKey(0), samples)
-        starts = np.asarray(jax.vmap(env.initial_states)(keys))
-        goals = np.asarray(jax.vmap(env.eval_goals)(keys))
-        views = {"xy": env.xy} if env.side_view_dims is None else {"xy": env.xy, "xz": env.side_view}
-        self.extents, self.starts, self.goals = {}, {}, {}
-        for name, view in views.items():
-            low, high = (np.asarray(view(np.asarray(b, np.float32))) for b in env.observation_bounds)
-            self.extents[name] = (low[0], high[0], low[1], high[1])
-            self.starts[name] = np.asarray(jax.vmap(view)(starts))
-            self.goals[name] = np.asarray(jax.vmap(view)(goals))
-        self.extent = self.extents["xy"]
-        self.air_height = env.air_height
-        self.walls = np.zeros((0, 2, 2))
-        if task == "point_umaze":
-            from envs_mjx.point_umaze import wall_faces
-
-            self.walls = wall_faces(radius=0.0)
-
-    def draw(self, axes, view: str = "xy"):
-        if view == "xy":
-            for segment in self.walls:
-                axes.plot(segment[:, 0], segment[:, 1], color="0.2", linewidth=2)
-        else:  # the side view: above the red line the object is in the air
-            axes.axhline(self.air_height, color="tab:red", linewidth=1.2, label="in the air above")
-        axes.scatter(*self.starts[view].T, marker="o", s=12, facecolors="none", edgecolors="tab:blue",
-                     label="start")
-        axes.scatter(*self.goals[view].T, marker="*", s=18, color="tab:green", label="goal")
-        extent = self.extents[view]
-        axes.set(xlim=extent[:2], ylim=extent[2:], aspect="equal")
+    if not handles:
+        return None
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    for columns in range(min(len(labels), 3), 0, -1):
+        legend = fig.legend(handles, labels, loc="outside lower center", ncols=columns, fontsize=fontsize)
+        if columns == 1 or legend.get_window_extent(renderer).width <= 0.98 * fig.bbox.width:
+            return legend
+        legend.remove()
 
 
 class HeatmapView(NamedTuple):
@@ -138,23 +116,17 @@ class HeatmapView(NamedTuple):
     share_key: str
     share_label: str
     axis_labels: tuple[str, str] | None
-    legend_loc: str  # where the legend hides the least: the side view's visits lie low
 
 
-TOP_VIEW = HeatmapView("xy", "visitation", "visitation/task_relevant", "task-relevant", None, "lower right")
-SIDE_VIEW = HeatmapView("xz", "side_visitation", "visitation/in_air", "in the air", ("x", "height z"),
-                        "upper right")
+TOP_VIEW = HeatmapView("xy", "visitation", "visitation/task_relevant", "task-relevant", None)
+SIDE_VIEW = HeatmapView("xz", "side_visitation", "visitation/in_air", "in the air", ("x", "height z"))
 
 
 def _panels(count):
     # "compressed": the constrained layout for fixed-aspect axes (maps, heatmaps); the plain one lets their
     # two-line titles run off the top of a row of panels.
-    fig = _figure(3.2 * count + 0.4, 3.4, layout="compressed")
+    fig = _figure(3.2 * count + 1.0, 3.9, layout="compressed")  # + the colour bar; the legend below
     return fig, [fig.add_subplot(1, count, i + 1) for i in range(count)]
-
-
-def _saved_visitation_steps(run, prefix: str = "visitation") -> set[int]:
-    return {int(p.stem.rsplit("_", 1)[1]) for p in (run.run_dir / "plots").glob(f"{prefix}_*.npy")}
 
 
 def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = None, view=TOP_VIEW):
@@ -165,25 +137,45 @@ def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = No
     for (t, agent), group in sorted(groups.items()):
         if t != task:
             continue
-        common = set.intersection(*(_saved_visitation_steps(r, view.prefix) for r in group))
+        common = set.intersection(*(r.saved_views(view.prefix) for r in group))
         eligible = [step for step in common if cap is None or step <= cap]
         if eligible:
             steps[agent] = max(eligible)
     if not steps:
         return None, {}
+    from matplotlib.colors import LogNorm
+
+    shares = {agent: visit_shares(groups[task, agent], view.prefix, step) for agent, step in steps.items()}
+    visited = np.concatenate([share[share > 0] for share in shares.values()])
+    # One scale for every panel, so that colours compare across agents; unvisited cells stay blank.
+    norm = LogNorm(vmin=visited.min(), vmax=visited.max()) if visited.size else None
     fig, axes = _panels(len(steps))
     for ax, (agent, step) in zip(axes, steps.items(), strict=True):
         group = groups[task, agent]
-        histogram = sum(np.load(r.run_dir / "plots" / f"{view.prefix}_{step:09d}.npy") for r in group)
         share = np.mean([r.steps.get(step, {}).get(view.share_key, np.nan) for r in group])
-        ax.imshow(np.log1p(histogram.T), origin="lower", extent=geometry.extents[view.name], cmap="viridis")
+        image = ax.imshow(np.ma.masked_equal(shares[agent].T, 0), origin="lower", norm=norm,
+                          extent=geometry.extents[view.name], cmap="viridis")
         geometry.draw(ax, view.name)
         if view.axis_labels:
             ax.set(xlabel=view.axis_labels[0], ylabel=view.axis_labels[1])
         seeds = f"{len(group)} seed{'s' * (len(group) > 1)}"
-        ax.set_title(f"{agent}: {view.share_label} {100 * share:.1f}%\n({seeds}, step {step:,})", fontsize=9)
-    axes[0].legend(loc=view.legend_loc, fontsize=7)
+        ax.set_title(f"{agent}\n{view.share_label} {run_groups.percent(share)}\n{seeds}, step {step:,}",
+                     fontsize=9)
+    fig.colorbar(image, ax=axes, shrink=0.8, label="share of visits per cell")
+    legend_below(fig, *axes[0].get_legend_handles_labels(), fontsize=7)
     return fig, steps
+
+
+def heatmap_panels(fig) -> list:
+    """The panels of a heatmap figure (its axes but the colour bar's)."""
+    return [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+
+
+def visit_shares(group, prefix: str, step: int) -> np.ndarray:
+    """The seeds' histograms at `step` summed, as shares of all their visits (agents with 3 and 5 seeds
+    compare)."""
+    histogram = sum(run.histogram(prefix, step) for run in group)
+    return histogram / max(histogram.sum(), 1)
 
 
 def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
@@ -192,18 +184,12 @@ def rest_density(trajectory: np.ndarray, radius: float) -> np.ndarray:
     return np.nansum(distances < radius, axis=1) / len(trajectory)
 
 
-def _load_back_starts(path) -> tuple[np.ndarray, int]:
-    """(xy (n, 100, 2), the step the file was saved at): each seed keeps its newest successful back chunks."""
-    with np.load(path) as data:
-        return data["xy"], int(data["step"])
-
-
 def back_starts_figure(task, groups, geometry: TaskGeometry):
     agents = []
     for (t, agent), group in sorted(groups.items()):
-        files = [r.run_dir / "plots" / "back_starts.npz" for r in group]
-        if t == task and any(f.exists() for f in files):
-            agents.append((agent, [_load_back_starts(f) for f in files if f.exists()]))
+        saved = [r.back_starts() for r in group] if t == task else []
+        if any(back is not None for back in saved):  # each seed keeps its newest successful back chunks
+            agents.append((agent, [back for back in saved if back is not None]))
     if not agents:
         return None
     fig, axes = _panels(len(agents))

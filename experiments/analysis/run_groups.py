@@ -1,7 +1,7 @@
-"""Run directories grouped by task and agent, with the statistics of the paper's protocol (mean and standard
-error over seeds) and the results table. No JAX, no matplotlib: experiments/plots.py draws from these.
+"""Runs grouped by task and agent, with the statistics of the paper's protocol (mean and standard error over
+seeds) and the results tables. No JAX, no matplotlib: experiments/plots.py draws from these.
 
-    runs, skipped = find_runs("runs")                  # every run dir below (config.json + metrics.jsonl)
+    runs, skipped = find_runs("runs")                  # every run dir and run record below
     groups = group_runs(runs)                          # {(task, agent): [RunRecord, ...]} sorted by seed
     steps, mean, stderr = curve(groups[key], "eval/success")
     rows = results_rows(groups, marks={"point_umaze": [25000, 50000, 100000]})
@@ -9,113 +9,44 @@ error over seeds) and the results table. No JAX, no matplotlib: experiments/plot
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 import pathlib
 
 import numpy as np
 
-from morefree_jax import variants
-from morefree_jax.legacy import stored_value
-from morefree_jax.logger import DROPPED_SHARE, PROVENANCE_FILE, read_metrics
+from experiments.analysis import records
+from experiments.analysis.run_record import RunRecord, read_run
+from morefree_jax.logger import DROPPED_SHARE
 
 
 class NoRunsError(Exception):
     """No usable run directory was found (the message says where and why)."""
 
 
-@dataclasses.dataclass
-class RunRecord:
-    """One run dir: its task, agent and seed, per-step merged metrics, and the commits that wrote it."""
-
-    run_dir: pathlib.Path
-    task: str
-    agent: str  # the group's label: the agent's name, with its alpha when a sweep changed it
-    seed: int
-    steps: dict[int, dict]
-    commits: tuple[str, ...]
-    base_agent: str = ""  # the registry's name (agents= filters on it)
-
-    def evaluations(self, key: str = "eval/success") -> dict[int, float]:
-        return {step: record[key] for step, record in sorted(self.steps.items()) if key in record}
-
-    def latest(self, key: str, step: int) -> float:
-        """`key` as last logged at or before `step` (NaN if never): the dropped share is logged every
-        log_every steps, not with the evaluations."""
-        logged = [value for at, value in self.evaluations(key).items() if at <= step]
-        return logged[-1] if logged else math.nan
-
-def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
-    """Short commits of every start of the run (provenance.jsonl), '+dirty' when the tree had changes."""
-    path = run_dir / PROVENANCE_FILE
-    if not path.exists():
-        return ("unknown",)
-    seen = []
-    for line in path.read_text().splitlines():
-        entry = json.loads(line)
-        commit = (entry.get("commit") or "unknown")[:7] + ("+dirty" if entry.get("dirty") else "")
-        if commit not in seen:
-            seen.append(commit)
-    return tuple(seen) or ("unknown",)
-
-
-def agent_label(config: dict) -> str:
-    """The agent's name, plus what the run set away from its defaults that splits a comparison: its alpha
-    (an alpha sweep: "morefree alpha=0.5", or both keys when they differ), the chunk update cadence, a bf16
-    learner ("morefree cadence=chunk precision=bf16"). A key a config.json lacks (an older run dir) reads
-    as the value that run computed with (legacy.py)."""
-    agent, extras = config["run"]["agent"], []
-    if agent in variants.VARIANTS:
-        chosen = variants.VARIANTS[agent]
-        collect = config.get("schedule", {}).get("alpha", chosen.collect_alpha)
-        imagine = config.get("agent", {}).get("alpha", chosen.imagination_alpha)
-        if (collect, imagine) != (chosen.collect_alpha, chosen.imagination_alpha):
-            extras += ([f"alpha={collect:g}"] if collect == imagine
-                       else [f"schedule.alpha={collect:g}", f"agent.alpha={imagine:g}"])
-        if stored_value(config, "run.update_cadence") != "interleaved":
-            extras.append(f"cadence={stored_value(config, 'run.update_cadence')}")
-    if stored_value(config, "agent.precision") != "f32":
-        extras.append(f"precision={stored_value(config, 'agent.precision')}")
-    return " ".join([agent, *extras])
-
-
-def read_run(run_dir: pathlib.Path) -> RunRecord:
-    """The run in `run_dir`; ValueError (one line: why) when it cannot be used."""
-    metrics = run_dir / "metrics.jsonl"
-    if not metrics.exists():
-        raise ValueError("no metrics.jsonl (not started yet?)")
-    try:
-        config = json.loads((run_dir / "config.json").read_text())
-        run = config["run"]
-        task, agent, seed, label = run["env"], run["agent"], int(run["seed"]), agent_label(config)
-    except (KeyError, ValueError, TypeError) as error:
-        raise ValueError(f"config.json is not a run config ({error})") from None
-    steps: dict[int, dict] = {}
-    for record in read_metrics(metrics):
-        steps.setdefault(int(record["step"]), {}).update(record)
-    record = RunRecord(run_dir, task, label, seed, steps, _commits(run_dir), agent)
-    if not record.evaluations():
-        raise ValueError("no evaluation yet")
-    return record
+def _candidates(root: pathlib.Path):
+    """(path, reader) for every run dir (config.json) and run record (seed<k>.jsonl, records.py) below."""
+    for config in sorted(root.rglob("config.json")):
+        yield config.parent, read_run
+    for path in sorted(root.rglob("seed*.jsonl")):
+        if records.is_record(path):
+            yield path, records.read_record
 
 
 def find_runs(root, task: str | None = None, agents=None) -> tuple[list[RunRecord], list[str]]:
-    """(runs below `root`, one line per skipped directory saying why); `agents`: only these agents' runs.
-    NoRunsError when none is usable."""
+    """(runs below `root`: run dirs and run records, one line per skipped one saying why); `agents`: only
+    these agents' runs. NoRunsError when none is usable."""
     root = pathlib.Path(root)
     if not root.is_dir():
         raise NoRunsError(f"{root} is not a directory")
     runs, skipped = [], []
-    for config in sorted(root.rglob("config.json")):
-        run_dir = config.parent
+    for path, read in _candidates(root):
         try:
-            record = read_run(run_dir)
+            record = read(path)
         except ValueError as error:
-            skipped.append(f"skipped {run_dir}: {error}")
+            skipped.append(f"skipped {path}: {error}")
             continue
         if task is not None and record.task != task:
-            skipped.append(f"skipped {run_dir}: holds task {record.task}, not {task}")
+            skipped.append(f"skipped {path}: holds task {record.task}, not {task}")
             continue
         runs.append(record)
     chosen = [run for run in runs if agents is None or run.base_agent in agents]
@@ -125,7 +56,7 @@ def find_runs(root, task: str | None = None, agents=None) -> tuple[list[RunRecor
             found = ", ".join(sorted({run.agent for run in runs}))
             raise NoRunsError(f"no run of {', '.join(agents)} found below {where} (agents there: {found})")
         raise NoRunsError(f"no run with evaluations found below {where} (a run dir holds config.json and "
-                          f"metrics.jsonl; {len(skipped)} skipped)")
+                          f"metrics.jsonl, a run record is a seed<k>.jsonl; {len(skipped)} skipped)")
     return chosen, skipped
 
 
@@ -136,14 +67,14 @@ def group_runs(runs: list[RunRecord], skipped: list[str] | None = None) -> Group
     """{(task, agent): runs sorted by seed}. A seed present twice (a copy, an archived run) keeps the first
     by path; a line saying which one is kept is appended to `skipped` when given."""
     groups: Groups = {}
-    for run in sorted(runs, key=lambda r: (r.task, r.agent, r.seed, str(r.run_dir))):
+    for run in sorted(runs, key=lambda r: (r.task, r.agent, r.seed, str(r.source))):
         group = groups.setdefault((run.task, run.agent), [])
         kept = next((other for other in group if other.seed == run.seed), None)
         if kept is None:
             group.append(run)
         elif skipped is not None:
-            skipped.append(f"skipped {run.run_dir}: seed {run.seed} of {run.agent} on {run.task} is taken "
-                           f"from {kept.run_dir} (give RUNS a narrower directory to choose)")
+            skipped.append(f"skipped {run.source}: seed {run.seed} of {run.agent} on {run.task} is taken "
+                           f"from {kept.source} (give RUNS a narrower directory to choose)")
     return groups
 
 
@@ -212,13 +143,25 @@ def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
 
 
 WINDOW_COLUMNS = ("task", "agent", "seeds", "start", "stop", "evaluations", "success_mean", "success_stderr",
-                  "final_success_mean", "final_success_stderr", "commits")
+                  "final_success_mean", "final_success_stderr", "task_relevant_mean", "task_relevant_stderr",
+                  "commits")
+
+
+def last_quarter(groups, task: str) -> tuple[int, int] | None:
+    """The default window of `task`'s table: the last quarter of the steps every agent has evaluated (all
+    seeds), (0.75 S, S); None before any evaluation."""
+    ends = [curve(g, "eval/success")[0] for (t, _), g in groups.items() if t == task]
+    if not ends or not all(len(steps) for steps in ends):
+        return None
+    stop = int(min(steps[-1] for steps in ends))
+    return stop - stop // 4, stop
 
 
 def window_rows(groups, start: int, stop: int) -> list[dict]:
     """One row per (task, agent) whose every seed has evaluated at `stop`: each seed's mean success over its
-    evaluations in [start, stop], then mean and standard error of those over seeds. Success at a single
-    evaluation swings between 0 and 1 in reset-free runs; a window says what the agent holds."""
+    evaluations in [start, stop], then mean and standard error of those over seeds; the task-relevant share
+    of the replay at `stop`. Success at a single evaluation swings between 0 and 1 in reset-free runs; a
+    window says what the agent holds."""
     rows = []
     for (task, agent), group in sorted(groups.items()):
         series = [run.evaluations("eval/success") for run in group]
@@ -228,9 +171,10 @@ def window_rows(groups, start: int, stop: int) -> list[dict]:
         finals = [run.evaluations("eval/final_success") for run in group]
         success = mean_stderr([np.mean([s[step] for step in steps]) for s in series])
         final = mean_stderr([np.mean([f.get(step, math.nan) for step in steps]) for f in finals])
+        relevant = mean_stderr([run.steps[stop].get("visitation/task_relevant", math.nan) for run in group])
         commits = sorted({c for run in group for c in run.commits})
         rows.append(dict(zip(WINDOW_COLUMNS, (task, agent, len(group), start, stop, len(steps), *success,
-                                              *final, " ".join(commits)), strict=True)))
+                                              *final, *relevant, " ".join(commits)), strict=True)))
     return rows
 
 
@@ -241,6 +185,12 @@ def percent(share: float) -> str:
 
 def with_error(mean: float, stderr: float) -> str:
     return f"{mean:.2f}" if math.isnan(stderr) else f"{mean:.2f} ± {stderr:.2f}"
+
+
+def percent_with_error(mean: float, stderr: float) -> str:
+    if math.isnan(mean):
+        return "-"
+    return f"{100 * mean:.1f}%" if math.isnan(stderr) else f"{100 * mean:.1f}% ± {100 * stderr:.1f}"
 
 
 def markdown_table(rows: list[dict]) -> str:
@@ -257,13 +207,14 @@ def markdown_table(rows: list[dict]) -> str:
 
 def window_markdown(rows: list[dict]) -> str:
     lines = [f"| task | agent | seeds | env steps | evaluations | mean {SUCCESS_ANY} | mean {SUCCESS_LAST} "
-             "| commits |", "|---|---|---|---|---|---|---|---|"]
+             "| task-relevant at the end | commits |", "|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
+        relevant = percent_with_error(row["task_relevant_mean"], row["task_relevant_stderr"])
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "
                      f"{row['start']:,}-{row['stop']:,} | {row['evaluations']} | "
                      f"{with_error(row['success_mean'], row['success_stderr'])} | "
                      f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
-                     f"{row['commits']} |")
+                     f"{relevant} | {row['commits']} |")
     return "\n".join(lines) + "\n"
 
 

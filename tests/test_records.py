@@ -1,0 +1,119 @@
+"""Run records (experiments/analysis/records.py, `make records`): a record holds what its run dir's
+metrics.jsonl holds at every evaluation, and the figures and tables drawn from records equal those drawn
+from the run dirs."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from experiments import plots, records
+from experiments.analysis import run_record
+from experiments.analysis.records import FORMAT, config_digest, read_record, write_record
+from morefree_jax.logger import DROPPED_SHARE, read_metrics
+from tests.plot_helpers import write_runs
+from tests.run_helpers import debug_config, debug_programs
+
+
+def _metrics_at_evaluations(run_dir) -> dict[int, dict]:
+    """Straight from metrics.jsonl: per evaluated step, its eval/* and visitation/* values and the dropped
+    share last logged at or before it."""
+    lines = read_metrics(run_dir / "metrics.jsonl")
+    evaluated = sorted({line["step"] for line in lines if "eval/success" in line})
+    expected = {}
+    for step in evaluated:
+        values = {key: value for line in lines if line["step"] == step for key, value in line.items()
+                  if key.startswith(("eval/", "visitation/"))}
+        dropped = [line[DROPPED_SHARE] for line in lines if DROPPED_SHARE in line and line["step"] <= step]
+        if dropped:
+            values[DROPPED_SHARE] = dropped[-1]
+        expected[step] = values
+    return expected
+
+
+def test_a_runs_record_holds_what_its_metrics_jsonl_holds(tmp_path):
+    from morefree_jax import driver
+
+    run_dir = tmp_path / "run"
+    config = debug_config("morefree", f"run_dir={run_dir}", "steps=420", "eval_every=200", "log_every=100")
+    driver.train(config, programs=debug_programs("morefree"), progress="off")
+    jsonl, npz = write_record(run_dir, tmp_path / "data")
+    assert jsonl == tmp_path / "data" / "tabletop" / "morefree" / "seed0.jsonl" and npz.exists()
+    lines = [json.loads(line) for line in jsonl.read_text().splitlines()]
+    head, evaluations = lines[0], lines[1:]
+    run_config = json.loads((run_dir / "config.json").read_text())
+    assert head["format"] == FORMAT and head["config"] == run_config
+    identity = (head["task"], head["agent"], head["seed"], head["precision"])
+    assert identity == ("tabletop", "morefree", 0, "f32")
+    assert head["config_digest"] == config_digest(run_config) and len(head["starts"]) == 1
+    expected = _metrics_at_evaluations(run_dir)
+    assert [line["step"] for line in evaluations] == sorted(expected) and len(expected) >= 2
+    for line in evaluations:
+        assert {key: value for key, value in line.items() if key != "step"} == expected[line["step"]]
+    with np.load(npz) as arrays:
+        last = max(expected)
+        assert int(arrays["visitation_step"]) == last
+        assert np.array_equal(arrays["visitation"], np.load(run_dir / "plots" / f"visitation_{last:09d}.npy"))
+
+
+def test_plots_from_records_equal_plots_from_the_run_dirs(tmp_path):
+    runs = write_runs(tmp_path / "runs")
+    assert records.main([f"runs={runs}", f"out={tmp_path / 'data'}"]) == 0
+    assert len(list((tmp_path / "data" / "point_umaze").rglob("seed*.jsonl"))) == 5
+    for source, out in ((runs, "from_runs"), (tmp_path / "data", "from_records")):
+        assert plots.main([f"runs={source}", f"out={tmp_path / out}", "window=2500:7500"]) == 0
+    drawn = sorted(path.name for path in (tmp_path / "from_runs").iterdir())
+    assert drawn == sorted(path.name for path in (tmp_path / "from_records").iterdir())
+    assert {"point_umaze_visitation.png", "point_umaze_back_starts.png", "point_umaze_window.md",
+            "ablation.csv"} <= set(drawn)
+    for name in drawn:
+        from_runs, from_records = (tmp_path / out / name for out in ("from_runs", "from_records"))
+        assert from_runs.read_bytes() == from_records.read_bytes(), name
+
+
+def test_a_record_reads_back_as_the_run_dir_reads(tmp_path):
+    runs = write_runs(tmp_path / "runs")
+    run_dir = runs / "point_umaze" / "morefree" / "seed1"
+    jsonl, _ = write_record(run_dir, tmp_path / "data")
+    from_dir, from_record = run_record.read_run(run_dir), read_record(jsonl)
+    for field in ("task", "agent", "seed", "commits", "base_agent"):
+        assert getattr(from_record, field) == getattr(from_dir, field)
+    assert from_record.evaluations() == from_dir.evaluations()
+    for step in from_dir.evaluations():
+        assert from_record.latest(DROPPED_SHARE, step) == from_dir.latest(DROPPED_SHARE, step)
+    assert from_record.saved_views() == {max(from_dir.saved_views())}
+    xy, step = from_record.back_starts()
+    assert np.array_equal(xy, from_dir.back_starts()[0], equal_nan=True) and step == 7500
+    with pytest.raises(KeyError, match="keeps the visitation histogram of steps"):
+        from_record.histogram("visitation", 2500)
+
+
+def test_records_of_runs_still_going_are_written_again_and_without_evaluations_skipped(tmp_path, capsys):
+    runs = write_runs(tmp_path / "runs")
+    (runs / "fresh").mkdir()
+    (runs / "fresh" / "config.json").write_text(json.dumps({"run": {"env": "point_umaze", "agent": "morefree",
+                                                                    "seed": 9}}))
+    out = tmp_path / "data"
+    assert records.main([f"runs={runs}", f"out={out}"]) == 0
+    assert "skipped" in capsys.readouterr().out
+    record = out / "point_umaze" / "morefree" / "seed0.jsonl"
+    before = len(record.read_text().splitlines())
+    metrics = runs / "point_umaze" / "morefree" / "seed0" / "metrics.jsonl"
+    with open(metrics, "a") as file:
+        file.write(json.dumps({"step": 10000, "eval/success": 0.9, "eval/final_success": 0.5}) + "\n")
+    assert records.main([f"runs={runs}", f"out={out}"]) == 0
+    assert len(record.read_text().splitlines()) == before + 1
+    assert math.isclose(read_record(record).evaluations()[10000], 0.9)
+
+
+@pytest.mark.parametrize("argv, message", [(["runs=/nonexistent"], "runs=/nonexistent is not a directory"),
+                                           (["out=x"], "runs=... required"), (["runs=."], None)])
+def test_bad_records_input_is_one_line(tmp_path, monkeypatch, argv, message, capsys):
+    monkeypatch.chdir(tmp_path)  # runs=. : a directory without run dirs
+    assert records.main(argv) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and error.startswith("error:")
+    assert message is None or message in error
