@@ -29,16 +29,17 @@ MARKS ?=
 WINDOW ?=
 PLOT_AGENTS ?=
 
-.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment plots records demos
+.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment sweep plots records demos
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
+# SWEEP=1: Ray for make sweep (the dev extras have it too).
 CUDA ?=
 comma := ,
 install:
 	@case "$(CUDA)" in ""|12|13) ;; *) echo "error: CUDA=$(CUDA) is not supported; use CUDA=12, CUDA=13 or leave it empty (CPU)"; exit 2;; esac
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev$(if $(CUDA),$(comma)cuda$(CUDA))]"
+	$(PY) -m pip install --quiet -e ".[dev$(if $(CUDA),$(comma)cuda$(CUDA))$(if $(SWEEP),$(comma)sweep)]"
 
 test:
 	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
@@ -66,6 +67,12 @@ train:
 experiment:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.experiment task=$(or $(TASK),$(ENV)) agents=$(AGENTS) \
 		seeds=$(or $(SEEDS),$(DEFAULT_SEEDS)) $(if $(STEPS),steps=$(STEPS)) preset=$(PRESET) $(ARGS)
+
+# A grid of runs as Ray tasks (experiments/grids/*.toml; RAY_ADDRESS=<cluster> to run on a cluster); re-run
+# to resume; then the figures in the grid's <runs>/results.
+GRID ?= experiments/grids/debug.toml
+sweep:
+	PYTHONPATH=src:. $(PY) -m experiments.sweep grid=$(GRID)
 
 # Figures (PNG, SVG) and results tables of every run dir below RUNS, written to OUT.
 plots:

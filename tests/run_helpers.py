@@ -3,6 +3,7 @@ the host-callback detectors, and the comparisons of exact resume."""
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import json
 import os
@@ -136,6 +137,22 @@ def sigkill_once_written(process: subprocess.Popen, path, timeout_s: float = 600
             return
         time.sleep(0.05)
     raise AssertionError(f"process group {process.pid} still alive after SIGKILL")
+
+
+def wait_until_unlocked(run_dir, timeout_s: float = 60) -> None:
+    """Waits until no process holds run_dir's lock (a killed run's process may take a moment to die). A
+    bare flock probe, not RunDirLock: that would empty the lock file on release, where a killed run leaves
+    its owner in it for the resume."""
+    deadline = time.monotonic() + timeout_s
+    with open(pathlib.Path(run_dir) / ".lock", "a") as lock:
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(lock, fcntl.LOCK_UN)
+                return
+            except BlockingIOError:
+                assert time.monotonic() < deadline, f"{run_dir}'s lock still held after its process died"
+                time.sleep(0.05)
 
 
 def unequal_leaves(a, b) -> list[str]:

@@ -3,7 +3,6 @@ lines, exit codes, plots at the end) with a stand-in for the train command that 
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import pathlib
@@ -17,6 +16,7 @@ import pytest
 
 from experiments import experiment
 from morefree_jax.config import ConfigError
+from tests.run_helpers import wait_until_unlocked
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
@@ -86,19 +86,9 @@ def test_agents_run_in_parallel_and_report(tmp_path, monkeypatch, capsys):
 def _sigkill_lock_owner(run_dir: pathlib.Path, timeout_s: float = 60) -> None:
     """SIGKILLs the train process that holds run_dir's lock and waits until the lock is free. experiment
     starts each train in its own session (a terminal's Ctrl-C reaches experiment alone), so killing
-    experiment's process group leaves its train running on. A bare flock probe, not RunDirLock: that
-    would empty the lock file on release, where a killed run leaves its owner in it for the resume."""
+    experiment's process group leaves its train running on."""
     os.kill(json.loads((run_dir / ".lock").read_text())["pid"], signal.SIGKILL)
-    deadline = time.monotonic() + timeout_s
-    with open(run_dir / ".lock") as lock:
-        while True:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                fcntl.flock(lock, fcntl.LOCK_UN)
-                return
-            except BlockingIOError:
-                assert time.monotonic() < deadline, f"{run_dir}'s lock still held after SIGKILL"
-                time.sleep(0.05)
+    wait_until_unlocked(run_dir, timeout_s)
 
 
 def test_a_debug_experiment_resumes_after_sigkill_and_plots(tmp_path):
