@@ -29,7 +29,7 @@ import time
 from typing import NamedTuple
 
 from experiments import plots
-from experiments.analysis.run_groups import read_run
+from experiments.analysis.run_record import read_run
 from morefree_jax.config import ConfigError
 from morefree_jax.seeds import parse_seeds
 

@@ -159,7 +159,10 @@ def main(argv: list[str]) -> int:
             print(f"{job.name}: finished before, skipped", flush=True)
     progress = Progress(grid.jobs)
     if todo:
-        ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        if os.environ.get("RAY_ADDRESS"):  # the cluster's own settings
+            ray.init(log_to_driver=False)
+        else:  # a Ray instance of this program's own, without the dashboard's processes
+            ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
         sweep = Sweep(grid, ray, progress)
         previous = {signum: signal.signal(signum, _raise_stop) for signum in (signal.SIGINT, signal.SIGTERM)}
         try:
