@@ -22,7 +22,7 @@ TASK ?=
 AGENTS ?= morefree,rf_peg
 DEFAULT_SEEDS := 0,1,2
 # make plots reads runs/ where it exists, else the committed run records (a fresh clone redraws results/).
-RUNS ?= $(if $(wildcard runs),runs,results/data)
+RUNS ?= $(if $(wildcard runs/*),runs,results/data)
 DATA ?= results/data
 OUT ?= results
 MARKS ?=

@@ -3,16 +3,18 @@
     python -m experiments.plots runs=runs [out=results] [task=point_umaze] [agents=oracle_sac,r3l]
                                 [marks=25000,50000,100000] [window=75000:100000] [visitation_step=100000]
 
-Reads every run dir below the given directory (config.json + metrics.jsonl; with agents= only those
-agents'), groups them by task and agent, and writes to out=, per task (PNG and SVG):
+Reads every run dir (config.json + metrics.jsonl) and run record (results/data, experiments/records.py)
+below the given directory (with agents= only those agents'), groups them by task and agent, and writes to
+out=, per task (PNG and SVG):
   <task>_success           eval success (any step of the episode) against env steps, mean over seeds with a
                            standard-error band, seed count in the legend (the paper's protocol)
   <task>_final_success     the same for success at the episode's last step
   <task>_task_relevant     share of the replay near an initial state or an evaluation goal
-  <task>_visitation        the replay's xy visitation histogram per agent at the latest step all its seeds
-                           have saved (visitation_step=N: at or below N, to compare agents at one step),
-                           summed over seeds; step and task-relevant share in the title; start (o) and goal
-                           (*) regions marked; the maze walls for PointUMaze
+  <task>_visitation        the replay's xy visitation per agent at the latest step all its seeds have
+                           saved (visitation_step=N: at or below N, to compare agents at one step): each
+                           cell's share of the visits summed over seeds, one log colour scale and its colour
+                           bar; step and task-relevant share in the title; the task-relevant region
+                           outlined, start (o) and goal (*) samples; the maze walls for PointUMaze
   <task>_side_visitation   tasks with a side view (pick_place, pick_place_hard): the same for the block's
                            x and height, the share of the replay with the block in the air in the title and
                            the air height as a red line (the paper's XZ heatmap of Pick&Place (hard))

@@ -10,8 +10,8 @@ per job where the cluster has GPUs. Re-running the same command resumes: finishe
 others resume from their checkpoints. A job that fails is run once more; if it fails again, it is reported
 with its log's last lines and the others go on. A progress table (job, state, steps reached, env steps/s,
 last evaluation) is printed every `progress_every` seconds; at the end the figures and tables of every
-run below <runs> go to <runs>/results. Ctrl-C stops every job (each keeps its last checkpoint). Exit codes:
-0 all done, 1 a job failed twice, 2 bad input (one line), 130 stopped.
+run below <runs> go to <runs>/results. Ctrl-C or SIGTERM stops every job (each keeps its last checkpoint).
+Exit codes: 0 all done, 1 a job failed twice, 2 bad input (one line), 130 stopped.
 """
 
 from __future__ import annotations
@@ -123,6 +123,26 @@ class Sweep:
                 print(self.progress.table(), flush=True)
 
 
+def run_jobs(grid, jobs, ray, progress_every: float) -> list[Job]:
+    """Runs `jobs` on Ray to their ends; the jobs that failed twice. Ctrl-C or SIGTERM: KeyboardInterrupt,
+    after Ray is shut down (its workers end, and their train processes with them; checkpoints stay)."""
+    if os.environ.get("RAY_ADDRESS"):  # the cluster's own settings
+        ray.init(log_to_driver=False)
+    else:  # a Ray instance of this program's own, without the dashboard's processes
+        ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
+    progress = Progress(grid.jobs)
+    sweep = Sweep(grid, ray, progress)
+    previous = {signum: signal.signal(signum, _raise_stop) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        sweep.run(jobs, progress_every)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        ray.shutdown()
+    print(progress.table(), flush=True)
+    return sweep.failed
+
+
 def _raise_stop(signum, frame):
     raise KeyboardInterrupt  # `kill` of a sweep in the background stops it as Ctrl-C does
 
@@ -157,35 +177,20 @@ def main(argv: list[str]) -> int:
     for job in grid.jobs:
         if job not in todo:
             print(f"{job.name}: finished before, skipped", flush=True)
-    progress = Progress(grid.jobs)
+    failed = []
     if todo:
-        if os.environ.get("RAY_ADDRESS"):  # the cluster's own settings
-            ray.init(log_to_driver=False)
-        else:  # a Ray instance of this program's own, without the dashboard's processes
-            ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
-        sweep = Sweep(grid, ray, progress)
-        previous = {signum: signal.signal(signum, _raise_stop) for signum in (signal.SIGINT, signal.SIGTERM)}
         try:
-            sweep.run(todo, args["progress_every"])
+            failed = run_jobs(grid, todo, ray, args["progress_every"])
         except KeyboardInterrupt:
-            ray.shutdown()  # the workers end, and their train processes with them; checkpoints stay
             print("stopped; every job keeps its last checkpoint; re-run the same command to resume",
                   file=sys.stderr)
             return STOPPED_EXIT
-        finally:
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
-        ray.shutdown()
-        print(progress.table(), flush=True)
-        if sweep.failed:
-            print(f"{len(sweep.failed)} job(s) failed: {', '.join(job.name for job in sweep.failed)}",
-                  file=sys.stderr)
-    failed = bool(todo) and bool(sweep.failed)
+    if failed:
+        print(f"{len(failed)} job(s) failed: {', '.join(job.name for job in failed)}", file=sys.stderr)
     if args["plots"]:
         agents = sorted({job.agent for job in grid.jobs})
         plots.main([f"runs={grid.runs}", f"out={grid.runs / 'results'}", f"agents={','.join(agents)}"])
     return 1 if failed else 0
-
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

@@ -6,6 +6,7 @@ is one line, exit 2."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -80,6 +81,22 @@ def test_a_killed_sweep_resumes_both_jobs_to_the_metrics_of_an_uninterrupted_one
         starts = [json.loads(line) for line in (resumed / "provenance.jsonl").read_text().splitlines()]
         assert [start["resumed"] for start in starts] == [False, True]  # from its checkpoint, not anew
         assert records_without_time(resumed) == records_without_time(reference)
+
+
+def test_sigterm_stops_the_sweep_and_its_jobs_with_exit_130(tmp_path):
+    write_grid(tmp_path / "grid.toml", tmp_path / "runs", PREFILL + 25 * CHUNK, eval_every=1000)
+    run_dirs = [tmp_path / "runs" / "tabletop" / agent / "seed0" for agent in ("morefree", "rf_peg")]
+    driver = start_sweep(tmp_path / "grid.toml")
+    deadline = time.monotonic() + 900
+    while not all((run_dir / "metrics.jsonl").exists() for run_dir in run_dirs):
+        assert driver.poll() is None and time.monotonic() < deadline, driver.stderr.read().decode()[-3000:]
+        time.sleep(0.05)
+    driver.send_signal(signal.SIGTERM)
+    code, _, err = finish(driver, timeout_s=120)
+    assert code == sweep.STOPPED_EXIT and "stopped; every job keeps its last checkpoint" in err
+    for run_dir in run_dirs:  # the train processes ended with the sweep
+        wait_until_unlocked(run_dir, timeout_s=30)
+        assert not (run_dir.parent / sweep.DONE_FILE).exists()
 
 
 def test_a_failing_job_is_run_once_more_then_reported_while_the_other_finishes(tmp_path):

@@ -64,11 +64,11 @@ def add_stamp(fig, stamp: str):
 def save(fig, out: pathlib.Path, name: str, stamp: str) -> list[pathlib.Path]:
     """name.png and name.svg with the stamp in a footer and in the files' metadata (no dates: files change
     only when their content does)."""
+    import matplotlib
+
     add_stamp(fig, stamp)
     paths = [out / f"{name}.png", out / f"{name}.svg"]
     fig.savefig(paths[0], dpi=120, metadata={"Description": stamp, "Software": None})
-    import matplotlib
-
     with matplotlib.rc_context({"svg.hashsalt": "morefree-jax"}):  # ids from the content, not at random
         fig.savefig(paths[1], metadata={"Description": stamp, "Date": None})
     return paths
@@ -130,9 +130,10 @@ def _panels(count):
 
 
 def visitation_figure(task, groups, geometry: TaskGeometry, cap: int | None = None, view=TOP_VIEW):
-    """Per agent: the view's histogram summed over seeds at the latest step all its seeds have saved (at or
-    below `cap` when given, to compare agents at one step); the step is in each panel's title. Agents
-    that ran for different lengths each show their latest. (figure, {agent: step}); (None, {}) if none."""
+    """Per agent: the view's histogram summed over seeds, as shares of the visits, at the latest step all
+    its seeds have saved (at or below `cap` when given, to compare agents at one step), on one log colour
+    scale with a colour bar; the step is in each panel's title, the legend under the panels. Agents that
+    ran for different lengths each show their latest. (figure, {agent: step}); (None, {}) if none."""
     steps = {}
     for (t, agent), group in sorted(groups.items()):
         if t != task:

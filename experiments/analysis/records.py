@@ -21,6 +21,7 @@ from __future__ import annotations
 import copy
 import io
 import json
+import math
 import os
 import pathlib
 
@@ -70,7 +71,7 @@ def evaluation_lines(run) -> list[dict]:
         logged = sorted(run.steps[step].items())
         line.update({key: value for key, value in logged if key.startswith(KEPT_PREFIXES)})
         dropped = run.latest(DROPPED_SHARE, step)
-        if dropped == dropped:  # not NaN: model-free agents log none
+        if not math.isnan(dropped):  # model-free agents log none
             line[DROPPED_SHARE] = dropped
         lines.append(line)
     return lines
