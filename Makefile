@@ -82,6 +82,7 @@ plots:
 
 # The run records of every run dir below RUNS (results/data/<task>/<group>/seed<k>.jsonl + .npz): commit them.
 records:
+	@if [ "$(RUNS)" = "$(DATA)" ]; then echo "error: make records needs RUNS=<a directory of run dirs>, e.g. RUNS=runs"; exit 2; fi
 	PYTHONPATH=src:. $(PY) -m experiments.records runs=$(RUNS) out=$(DATA)
 
 evaluate:
