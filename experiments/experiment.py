@@ -147,7 +147,7 @@ def _signal_all(processes) -> None:
             process.send_signal(signal.SIGINT)
 
 
-def _stop_on_signals() -> dict:
+def stop_on_signals() -> dict:
     """Installs _raise_stop for SIGINT and SIGTERM -> the previous handlers. Explicitly, because a shell
     starts a background command (`nohup make experiment ... &`) with SIGINT ignored, and Python keeps an
     ignored SIGINT ignored: `kill -INT` would then do nothing, and `kill` would leave the agents running."""
@@ -166,7 +166,7 @@ def run_agents(settings: dict, passed: list[str]) -> Outcome:
     cores = sorted(os.sched_getaffinity(0))
     pending, running, started, codes = list(settings["agents"]), {}, {}, {}
     last_print = -float("inf")
-    previous = _stop_on_signals()
+    previous = stop_on_signals()
     try:
         while pending or running:
             free = [c for c in cores if c not in {core for _, core in running.values()}]

@@ -24,6 +24,7 @@ import time
 
 from experiments import plots
 from experiments.cli import REQUIRED, KeyValueError, parse_keys
+from experiments.experiment import STOPPED_EXIT, stop_on_signals
 from experiments.sweep_grid import REPO, GridError, Job, load_grid
 from experiments.sweep_progress import Progress
 
@@ -31,7 +32,6 @@ INSTALL_HINT = "make sweep needs Ray: make install SWEEP=1 (or pip install -e '.
 DONE_FILE = "sweep_done.json"  # in a job's directory: the train arguments it finished with
 ATTEMPTS = 2  # a failed job runs once more
 LOG_TAIL_LINES = 15
-STOPPED_EXIT = 130
 
 
 def finished(job: Job) -> bool:
@@ -132,7 +132,7 @@ def run_jobs(grid, jobs, ray, progress_every: float) -> list[Job]:
         ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False)
     progress = Progress(grid.jobs)
     sweep = Sweep(grid, ray, progress)
-    previous = {signum: signal.signal(signum, _raise_stop) for signum in (signal.SIGINT, signal.SIGTERM)}
+    previous = stop_on_signals()  # `kill` of a sweep in the background stops it as Ctrl-C does
     try:
         sweep.run(jobs, progress_every)
     finally:
@@ -141,10 +141,6 @@ def run_jobs(grid, jobs, ray, progress_every: float) -> list[Job]:
         ray.shutdown()
     print(progress.table(), flush=True)
     return sweep.failed
-
-
-def _raise_stop(signum, frame):
-    raise KeyboardInterrupt  # `kill` of a sweep in the background stops it as Ctrl-C does
 
 
 def _said(code) -> str:

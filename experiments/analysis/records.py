@@ -27,11 +27,11 @@ import pathlib
 
 import numpy as np
 
-from experiments.analysis.run_record import RunRecord, read_run, short_commits
+from experiments.analysis.run_record import RunRecord, read_run, read_starts, short_commits
 from morefree_jax.checkpoint import config_hash
 from morefree_jax.config import RESUMABLE_KEYS
 from morefree_jax.legacy import stored_value
-from morefree_jax.logger import DROPPED_SHARE, PROVENANCE_FILE
+from morefree_jax.logger import DROPPED_SHARE
 
 FORMAT = "morefree-jax run record 1"
 KEPT_PREFIXES = ("eval/", "visitation/")  # the values the figures and tables read, per evaluation
@@ -55,11 +55,8 @@ def group_dir_name(label: str) -> str:
 
 
 def _provenance(run_dir: pathlib.Path) -> list[dict]:
-    path = run_dir / PROVENANCE_FILE
-    if not path.exists():
-        return []
-    starts = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [{key: entry.get(key) for key in ("start_step", "commit", "dirty", "changed")} for entry in starts]
+    fields = ("start_step", "commit", "dirty", "changed")
+    return [{key: entry.get(key) for key in fields} for entry in read_starts(run_dir)]
 
 
 def evaluation_lines(run) -> list[dict]:

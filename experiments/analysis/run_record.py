@@ -86,11 +86,12 @@ def short_commits(starts: list[dict]) -> tuple[str, ...]:
     return tuple(seen) or ("unknown",)
 
 
-def _commits(run_dir: pathlib.Path) -> tuple[str, ...]:
+def read_starts(run_dir: pathlib.Path) -> list[dict]:
+    """The entries of the run dir's provenance.jsonl, one per start or resume ([] where there is none)."""
     path = run_dir / PROVENANCE_FILE
     if not path.exists():
-        return ("unknown",)
-    return short_commits([json.loads(line) for line in path.read_text().splitlines() if line.strip()])
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def agent_label(config: dict) -> str:
@@ -127,7 +128,8 @@ def read_run(run_dir: pathlib.Path) -> RunRecord:
     steps: dict[int, dict] = {}
     for record in read_metrics(metrics):
         steps.setdefault(int(record["step"]), {}).update(record)
-    record = RunRecord(run_dir, task, label, seed, steps, _commits(run_dir), agent, RunDirArtifacts(run_dir))
+    record = RunRecord(run_dir, task, label, seed, steps, short_commits(read_starts(run_dir)), agent,
+                       RunDirArtifacts(run_dir))
     if not record.evaluations():
         raise ValueError("no evaluation yet")
     return record
