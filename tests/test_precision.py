@@ -82,17 +82,40 @@ def test_under_bf16_parameters_optimizer_state_and_losses_stay_float32():
     assert all(np.isfinite(float(value)) for value in metrics.values())
 
 
-def test_bf16_matmul_gradients_match_float32_to_bfloat16_rounding():
-    x = jax.random.normal(jax.random.PRNGKey(0), (3, 5, 16))
-    kernel = jax.random.normal(jax.random.PRNGKey(1), (16, 8))
+def _sin_loss(x, kernel, which):
+    return jnp.sum(jnp.sin(precision.matmul(x, kernel, which)))
 
-    def loss(x, kernel, which):
-        return jnp.sum(jnp.sin(precision.matmul(x, kernel, which)))
 
-    exact = jax.grad(loss, argnums=(0, 1))(x, kernel, "f32")
-    mixed = jax.grad(loss, argnums=(0, 1))(x, kernel, "bf16")
+# (input width, output width): the weight gradient transposes the narrower side; under 8 columns it does not
+WIDTHS = [(16, 8), (8, 24), (16, 4)]
+
+
+@pytest.mark.parametrize(("width_in", "width_out"), WIDTHS)
+def test_bf16_matmul_gradients_match_float32_to_bfloat16_rounding(width_in, width_out):
+    x = jax.random.normal(jax.random.PRNGKey(0), (3, 5, width_in))
+    kernel = jax.random.normal(jax.random.PRNGKey(1), (width_in, width_out))
+    grad = jax.jit(jax.grad(_sin_loss, argnums=(0, 1)), static_argnums=2)
+    exact, mixed = grad(x, kernel, "f32"), grad(x, kernel, "bf16")
     for a, b in zip(exact, mixed, strict=True):
         assert b.dtype == jnp.float32 and b.shape == a.shape
+        np.testing.assert_allclose(b, a, rtol=0.05, atol=0.05 * float(jnp.max(jnp.abs(a))))
+
+
+def test_bf16_weight_gradients_contract_a_row_major_lhs_also_under_vmap():
+    # XLA's CPU backend runs a dot whose lhs contracts over its major axis in float32 (precision.py)
+    x = jax.random.normal(jax.random.PRNGKey(0), (4, 10, 16))  # 4 ensemble members
+    kernels = jax.random.normal(jax.random.PRNGKey(1), (4, 16, 24))
+    grad = jax.vmap(jax.grad(_sin_loss, argnums=(0, 1)), in_axes=(0, 0, None))
+    jaxpr = jax.make_jaxpr(grad, static_argnums=2)(x, kernels, "bf16").jaxpr
+    dots = [eqn for eqn in _equations(jaxpr) if eqn.primitive.name == "dot_general"]
+    assert len(dots) == 3  # forward, input gradient, weight gradient
+    for eqn in dots:
+        (lhs_contract, _), (lhs_batch, _) = eqn.params["dimension_numbers"]
+        assert tuple(lhs_contract) == (eqn.invars[0].aval.ndim - 1,), eqn
+        assert tuple(lhs_batch) in ((), (0,)), eqn
+    compiled = jax.jit(grad, static_argnums=2)
+    exact, mixed = compiled(x, kernels, "f32"), compiled(x, kernels, "bf16")
+    for a, b in zip(exact, mixed, strict=True):
         np.testing.assert_allclose(b, a, rtol=0.05, atol=0.05 * float(jnp.max(jnp.abs(a))))
 
 

@@ -94,14 +94,37 @@ def _bf16_matmul_fwd(x, kernel):
     return _contract_last(x16, kernel16, -1, 0), (x16, kernel16)
 
 
+MIN_LIBRARY_WIDTH = 8  # XLA's CPU backend hands a dot to its library (YNNPACK) only from 2 rows/columns on
+
+
+def _row_major_transpose(matrix: jax.Array) -> jax.Array:
+    """matrix.T stored row-major. XLA gives a plain transpose a column-major layout and folds it into the
+    dot, and its CPU backend runs a dot whose lhs contracts over the major axis as a float32 matmul (the
+    library kernels take only row-major operands); flattening behind an optimization barrier makes the
+    transposed copy real."""
+    flat = jax.lax.optimization_barrier(matrix.T.reshape(-1))
+    return flat.reshape(matrix.shape[1], matrix.shape[0])
+
+
+def _weight_gradient(x16: jax.Array, grad16: jax.Array) -> jax.Array:
+    """(N, in) x (N, out) -> (in, out), contracted over the N rows in bfloat16 with a float32 result. The
+    smaller of the two is transposed into a row-major lhs (docs/performance.md, "Precision"). Below
+    MIN_LIBRARY_WIDTH columns XLA's own dot runs it, which needs no transpose."""
+    if min(x16.shape[-1], grad16.shape[-1]) < MIN_LIBRARY_WIDTH:
+        return _contract_last(x16, grad16, 0, 0)
+    if x16.shape[-1] <= grad16.shape[-1]:
+        return _contract_last(_row_major_transpose(x16), grad16, -1, 0)
+    transposed = _contract_last(_row_major_transpose(grad16), x16, -1, 0)  # (out, in)
+    return jax.lax.optimization_barrier(transposed).T
+
+
 def _bf16_matmul_bwd(residuals, grad):
     """Gradients in float32, the dtype of every input here (parameters and activations)."""
     x16, kernel16 = residuals
     grad16 = grad.astype(jnp.bfloat16)
     grad_x = _contract_last(grad16, kernel16, -1, 1)  # (..., out) x (in, out) -> (..., in)
     flat_x, flat_grad = x16.reshape(-1, x16.shape[-1]), grad16.reshape(-1, grad16.shape[-1])
-    grad_kernel = _contract_last(flat_x, flat_grad, 0, 0)  # (N, in) x (N, out) -> (in, out)
-    return grad_x, grad_kernel
+    return grad_x, _weight_gradient(flat_x, flat_grad)
 
 
 _bf16_matmul.defvjp(_bf16_matmul_fwd, _bf16_matmul_bwd)
