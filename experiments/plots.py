@@ -26,7 +26,8 @@ and the commits of the code that wrote the runs.
 and <task>_window.csv / .md, the results table of the paper's protocol: each seed's mean success over its
 evaluations in a window of steps, mean +- standard error over seeds, and the task-relevant share at its end
 (agents whose every seed has evaluated at its end); window=START:STOP, by default each task's last quarter
-of the steps every agent reached.
+of the steps every agent reached; under it the task's chance level where runs= holds <task>/zero_action.json
+(`make records` writes it, experiments/analysis/zero_action.py).
 Across tasks, where morefree and at least one ablation variant (rf_peg, mf_task_only, mf_no_bfge,
 mf_no_imag) ran: ablation.png / .svg / .csv / .md, the paper's ablation figure (final success normalised by
 MoReFree's, mean over tasks; experiments/analysis/ablation_summary.py says how). The drawing code is
@@ -40,7 +41,7 @@ from __future__ import annotations
 import pathlib
 import sys
 
-from experiments.analysis import run_groups
+from experiments.analysis import run_groups, zero_action
 from experiments.analysis.figures import write_ablation, write_table, write_task, write_window
 from experiments.analysis.run_groups import NoRunsError
 from experiments.cli import REQUIRED, KeyValueError, parse_keys
@@ -89,7 +90,8 @@ def main(argv: list[str]) -> int:
         written += write_table(task, groups, out, args["marks"], stamp_for)
         window = args["window"] or run_groups.last_quarter(groups, task)
         if window:
-            written += write_window(task, groups, out, window, stamp_for)
+            chance = zero_action.read_reference(args["runs"], task)
+            written += write_window(task, groups, out, window, stamp_for, chance)
     written += write_ablation(groups, out, stamp_for)
     for (task, agent), group in sorted(groups.items()):
         print(f"{task} {agent}: seeds {','.join(str(r.seed) for r in group)}")

@@ -7,11 +7,14 @@ from __future__ import annotations
 import json
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import envs_mjx
 from experiments import plots, records
-from experiments.analysis import run_record
+from experiments.analysis import run_record, zero_action
 from experiments.analysis.records import FORMAT, config_digest, read_record, write_record
 from morefree_jax.logger import DROPPED_SHARE, read_metrics
 from tests.plot_helpers import write_runs
@@ -61,7 +64,7 @@ def test_a_runs_record_holds_what_its_metrics_jsonl_holds(tmp_path):
 
 def test_plots_from_records_equal_plots_from_the_run_dirs(tmp_path):
     runs = write_runs(tmp_path / "runs")
-    assert records.main([f"runs={runs}", f"out={tmp_path / 'data'}"]) == 0
+    assert records.main([f"runs={runs}", f"out={tmp_path / 'data'}", "chance_episodes=0"]) == 0
     assert len(list((tmp_path / "data" / "point_umaze").rglob("seed*.jsonl"))) == 5
     for source, out in ((runs, "from_runs"), (tmp_path / "data", "from_records")):
         assert plots.main([f"runs={source}", f"out={tmp_path / out}", "window=2500:7500"]) == 0
@@ -97,16 +100,34 @@ def test_records_of_runs_still_going_are_written_again_and_without_evaluations_s
     (runs / "fresh" / "config.json").write_text(json.dumps({"run": {"env": "point_umaze", "agent": "morefree",
                                                                     "seed": 9}}))
     out = tmp_path / "data"
-    assert records.main([f"runs={runs}", f"out={out}"]) == 0
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
     assert "skipped" in capsys.readouterr().out
     record = out / "point_umaze" / "morefree" / "seed0.jsonl"
     before = len(record.read_text().splitlines())
     metrics = runs / "point_umaze" / "morefree" / "seed0" / "metrics.jsonl"
     with open(metrics, "a") as file:
         file.write(json.dumps({"step": 10000, "eval/success": 0.9, "eval/final_success": 0.5}) + "\n")
-    assert records.main([f"runs={runs}", f"out={out}"]) == 0
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
     assert len(record.read_text().splitlines()) == before + 1
     assert math.isclose(read_record(record).evaluations()[10000], 0.9)
+
+
+def test_the_chance_level_counts_goals_met_without_acting_and_window_tables_quote_it(tmp_path, monkeypatch):
+    env = envs_mjx.make("tabletop")
+    start = env.reset(jax.random.PRNGKey(0)).obs
+    # every other evaluation goal is the start itself: met at once by a policy that never acts
+    goals = lambda key, count: jnp.where((jnp.arange(count) % 2 == 0)[:, None], start,  # noqa: E731
+                                         type(env).evaluation_goals(env, key, count))
+    monkeypatch.setattr(env, "evaluation_goals", goals)
+    reached, final = zero_action.zero_action_rollout(env, jax.random.PRNGKey(1), 8)
+    assert reached.tolist() == final.tolist() == [True, False] * 4
+    reference = zero_action.zero_action_reference("tabletop", episodes=16)
+    assert (reference["success"], reference["episodes"]) == (0.0, 16)  # its goals are away from the start
+    runs = write_runs(tmp_path / "runs")
+    zero_action.write_reference({**reference, "task": "point_umaze", "success": 0.085}, runs)
+    assert plots.main([f"runs={runs}", f"out={tmp_path / 'out'}", "window=2500:7500"]) == 0
+    table = (tmp_path / "out" / "point_umaze_window.md").read_text()
+    assert "Chance level: a policy that never acts succeeds in 0.085 of 16 episodes" in table
 
 
 @pytest.mark.parametrize("argv, message", [(["runs=/nonexistent"], "runs=/nonexistent is not a directory"),

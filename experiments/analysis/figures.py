@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from experiments.analysis import ablation_summary, run_groups
+from experiments.analysis import ablation_summary, run_groups, zero_action
 from experiments.analysis.task_geometry import TaskGeometry
 
 CURVES = (("success", "eval/success", run_groups.SUCCESS_ANY),
@@ -240,14 +240,16 @@ def write_table(task, groups, out, marks, stamp_for) -> list[pathlib.Path]:
     return paths
 
 
-def write_window(task, groups, out, window, stamp_for) -> list[pathlib.Path]:
-    """<task>_window.csv and .md: mean success over the evaluations in the window (run_groups.window_rows)."""
+def write_window(task, groups, out, window, stamp_for, chance: dict | None = None) -> list[pathlib.Path]:
+    """<task>_window.csv and .md: mean success over the evaluations in the window (run_groups.window_rows);
+    under the markdown table the task's chance level where one is given (zero_action.py)."""
     task_groups = {key: group for key, group in groups.items() if key[0] == task}
     rows = run_groups.window_rows(task_groups, *window)
     commits = sorted({c for group in task_groups.values() for r in group for c in r.commits})
     paths = [out / f"{task}_window.csv", out / f"{task}_window.md"]
     paths[0].write_text(run_groups.csv_text(rows, run_groups.WINDOW_COLUMNS))
-    paths[1].write_text(run_groups.window_markdown(rows) + f"\n{stamp_for(commits)}\n")
+    chance_line = f"\n{zero_action.markdown_line(chance)}\n" if chance else ""
+    paths[1].write_text(run_groups.window_markdown(rows) + chance_line + f"\n{stamp_for(commits)}\n")
     return paths
 
 
