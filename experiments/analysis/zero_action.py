@@ -6,8 +6,8 @@
 
 Episodes as evaluate.evaluate_policy runs them (a fresh reset, a goal from the task's evaluation goals, the
 task's episode length, success at any step and at the last), with a zero action at every step. On the Fetch
-tasks goals are drawn around the block's start, so some are met before the robot moves (Push (hard): a goal
-within 5 cm of the start, about 9% of the episodes); a learning curve means something above this level.
+tasks goals are drawn around the block's start, so some are met before the robot moves (a goal within the
+success threshold of the start); a learning curve means something above this level.
 """
 
 from __future__ import annotations
