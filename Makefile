@@ -42,7 +42,7 @@ install:
 	$(PY) -m pip install --quiet -e ".[dev$(if $(CUDA),$(comma)cuda$(CUDA))$(if $(SWEEP),$(comma)sweep)]"
 
 test:
-	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -m "not slow" -q -n $(TEST_WORKERS) --dist loadfile --durations=30
 
 test-slow:
 	$(PY) -m pytest -m slow -q

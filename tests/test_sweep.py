@@ -39,10 +39,16 @@ def finish(process: subprocess.Popen, timeout_s: float = 900) -> tuple[int, str,
     return process.returncode, out.decode(), err.decode()
 
 
-def kill_once_written(driver: subprocess.Popen, paths, timeout_s: float = 900) -> None:
-    """SIGKILLs the sweep's driver (only it) as soon as every one of `paths` exists."""
+def has_a_checkpoint(run_dir) -> bool:
+    return any((run_dir / "checkpoints").glob("*/files.json"))  # files.json: written last, at commit
+
+
+def kill_once_checkpointed(driver: subprocess.Popen, run_dirs, timeout_s: float = 900) -> None:
+    """SIGKILLs the sweep's driver (only it) as soon as every one of `run_dirs` holds a checkpoint. Any
+    checkpoint, not one step's: runs keep only their newest three, so a job a few chunks ahead of the other
+    may have deleted a given step's checkpoint before the other writes its own."""
     deadline = time.monotonic() + timeout_s
-    while not all(path.exists() for path in paths):
+    while not all(has_a_checkpoint(run_dir) for run_dir in run_dirs):
         assert driver.poll() is None, driver.stderr.read().decode()[-3000:]
         assert time.monotonic() < deadline, "no checkpoint in time"
         time.sleep(0.05)
@@ -68,8 +74,7 @@ def test_a_killed_sweep_resumes_both_jobs_to_the_metrics_of_an_uninterrupted_one
     write_grid(tmp_path / "killed.toml", tmp_path / "killed", steps, eval_every=1000)
     killed = [tmp_path / "killed" / "tabletop" / agent / "seed0" for agent in ("morefree", "rf_peg")]
     driver = start_sweep(tmp_path / "killed.toml")
-    kill_once_written(driver, [run_dir / "checkpoints" / str(PREFILL + CHUNK) / "files.json"
-                               for run_dir in killed])
+    kill_once_checkpointed(driver, killed)
     for run_dir in killed:  # the jobs die with the driver's Ray workers
         wait_until_unlocked(run_dir, timeout_s=120)
     for run_dir in killed:
