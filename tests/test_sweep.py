@@ -40,7 +40,9 @@ def finish(process: subprocess.Popen, timeout_s: float = 900) -> tuple[int, str,
 
 
 def has_a_checkpoint(run_dir) -> bool:
-    return any((run_dir / "checkpoints").glob("*/files.json"))  # files.json: written last, at commit
+    """A complete checkpoint: a step's dir (named by its step, after orbax's rename) with its files.json,
+    which is written last."""
+    return any(path.parent.name.isdigit() for path in (run_dir / "checkpoints").glob("*/files.json"))
 
 
 def kill_once_checkpointed(driver: subprocess.Popen, run_dirs, timeout_s: float = 900) -> None:
