@@ -169,8 +169,8 @@ def _cpu() -> AgentConfig:
     # Chosen by measurement (experiments/benchmarks/core.py; docs/performance.md, "Learning core"): the
     # paper's structure (layer counts, horizon, heads, losses) with every width 128 (stoch 32), batch 16 x 50,
     # 64 imagination starts (random subset of the 800 posteriors) and 4 ensemble members; imagination scans
-    # fully unrolled. The imagination parts scale with the starts: 64 -> ~80 ms per train step, 96 -> ~100,
-    # 128 -> ~140 on the idle 2-core machine, so 64 keeps the step inside the 100 ms budget with a margin.
+    # fully unrolled. The imagination parts scale with the starts; 64 keeps the step inside the 100 ms
+    # budget with a margin (the timings per start count are in docs/performance.md).
     width = (128, 128, 128)
     wm = WorldModelConfig(deter=128, hidden=128, stoch=32, encoder_layers=width, decoder_layers=width,
                           embed_head_layers=width)

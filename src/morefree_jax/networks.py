@@ -54,7 +54,7 @@ def elu(x: jax.Array) -> jax.Array:
 
     exp(x) - 1 is what TensorFlow's Elu kernel (the original agent's) computes; `jax.nn.elu` uses expm1,
     which differs by at most ~1e-7 absolute and costs twice as much on CPU (XLA evaluates expm1 with
-    both a polynomial and exp): the ELU of a (10, 33750, 400) ensemble activation 39 -> 17 ms.
+    both a polynomial and exp; docs/performance.md, "What the runtime settings gain").
     Its derivative is written with the output (1 where x > 0, else y + 1 = exp(x)), so the backward pass
     reuses y instead of evaluating exp(x) again: ELU passes over (N, 400) activations are a large share of
     a train step on CPU.

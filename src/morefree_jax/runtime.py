@@ -5,12 +5,12 @@ benchmarks calls `morefree_jax.runtime.configure()` first thing, before any JAX 
 (experiments/train.py, evaluate.py, bench*.py) and the test suite's conftest do; in a notebook, call it in
 the first cell. `settings()` tells what was applied (mode "unconfigured" if nothing was).
 
-`configure(mode)`, or MOREFREE_JAX_RUNTIME when mode is None, picks them (measured with
-experiments/benchmarks/core.py on the 2-core dev machine):
+`configure(mode)`, or MOREFREE_JAX_RUNTIME when mode is None, picks them (each chosen by measurement with
+experiments/benchmarks/core.py; the figures are in docs/performance.md, "What the runtime settings gain"):
 
 - `standard` (the default): `--xla_cpu_prefer_vector_width=512` on CPUs with AVX-512. XLA's loop fusions
-  (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256: the `cpu` train step
-  111 -> 78 ms, the ensemble forward at `paper` size 270 -> 300 GFLOP/s.
+  (ELUs and their derivatives, Adam) then vectorise 512 bits wide instead of 256, and both the `cpu` train
+  step and the `paper`-size ensemble get faster.
   On every CPU, `--xla_cpu_copy_insertion_use_region_analysis=true`: XLA's copy insertion then sees that a
   buffer carried through a loop can be updated in place where its default analysis copies it. The
   model-free chunk stores into and samples from its replay in every step of one scan, and by default
@@ -20,13 +20,13 @@ experiments/benchmarks/core.py on the 2-core dev machine):
   `standard` plus two changes that only pay off when one update moves gigabytes.
   1. Page faults. XLA allocates an execution's temporaries (6.5 GB at `paper`) afresh on every call;
      glibc serves that from a fresh `mmap` (always, for a thread off the main arena) and unmaps it on
-     `free`, so every update faults in and zeroes every page again: 1.6 million minor faults and ~8 s of
-     kernel time per exploration update. One malloc arena, no mmap'd chunks and no trimming keep freed
-     memory in the process: 0 faults, the exploration part 9.3 s -> 5.1 s. The process keeps its peak
-     heap (the next update reuses it). With small learners the single arena costs more than it saves
-     (threads contend for it: `cpu` train step 78 -> ~147 ms), hence not the default.
+     `free`, so every update faults in and zeroes every page again, millions of minor faults per
+     exploration update. One malloc arena, no mmap'd chunks and no trimming keep freed memory in the
+     process: no faults, and the exploration part nearly twice as fast. The process keeps its peak heap
+     (the next update reuses it). With small learners the single arena costs more than it saves (threads
+     contend for it: the `cpu` train step about 2x slower), hence not the default.
   2. YNNPACK fusions off (`--xla_cpu_experimental_ynn_fusion_type=`): XLA's own dot emitter runs the
-     (33750, 400) x (400, 400) matmuls of the paper-size ensemble at ~350 GFLOP/s instead of ~170-250.
+     (33750, 400) x (400, 400) matmuls of the paper-size ensemble faster than YNNPACK does.
      Only for float32 learners (`configure(precision=...)`): with bfloat16 inputs YNNPACK's dots are the
      fast ones (docs/performance.md, "Precision").
 - `default`: touch nothing.
@@ -35,11 +35,10 @@ XLA flags take effect only if no JAX backend exists yet; flags already in XLA_FL
 
 jemalloc, where installed (Debian/Ubuntu `libjemalloc2`), does better than any glibc setting: per-thread
 caches instead of one contended arena, and with purging off (`MALLOC_CONF=JEMALLOC_CONF`) no page is
-faulted in twice.
-Measured on the 2-core machine: the `paper` train step 6.8-7.1 s (glibc, `large`) -> 5.8 s, the `cpu`
-step 70-75 -> 60-65 ms. An allocator is chosen when a process starts, so it is preloaded by the launchers:
-`make train/evaluate/bench` run their command under `allocator_env()` (printed by
-`print_allocator_env()`), the core benchmark's paper child process too. With jemalloc loaded,
+faulted in twice; both train steps get faster (docs/performance.md, "Learning core"). An allocator is
+chosen when a process starts, so it is preloaded by the launchers: `make train/evaluate/bench` run their
+command under `allocator_env()` (printed by `print_allocator_env()`), the core benchmark's paper child
+process too. With jemalloc loaded,
 `large` leaves glibc's malloc alone (it is not used). MOREFREE_JAX_JEMALLOC=0 opts out.
 """
 
