@@ -114,7 +114,8 @@ def train_step(m, state, batch: Batch, goals: GoalPools, key: jax.Array):
     gc_actor, gc_critic, distance_state, gc_metrics = goal_conditioned_part(
         m, state, wm_state.params, posterior, batch, goals, key_starts, key_gc)
     # The two imagination parts are independent and XLA may interleave them; the barrier makes the
-    # exploration part wait for the goal-conditioned one (measured: paper step 6.85 -> 6.56 s median).
+    # exploration part wait for the goal-conditioned one, and the `paper` step runs faster so
+    # (docs/performance.md).
     (gc_actor, gc_critic, distance_state), posterior = jax.lax.optimization_barrier(
         ((gc_actor, gc_critic, distance_state), posterior))
     ensemble_state, explore_actor, explore_critic, explore_metrics = explore_part(

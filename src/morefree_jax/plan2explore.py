@@ -57,8 +57,8 @@ def ensemble_predict(ens: Ensemble, params, inputs: jax.Array) -> jax.Array:
 
     All members read the same input, so their first layers run as one matmul against the concatenated
     kernels (in, K * h); the remaining layers are vmapped over members. XLA on CPU runs a vmapped matmul
-    with a shared input (batch dimension on one side only) far slower than either form (measured in
-    experiments/benchmarks/core.py's history: ~1.5x on the whole ensemble forward + backward).
+    with a shared input (batch dimension on one side only) far slower than either form
+    (docs/performance.md, "What the runtime settings gain").
     """
     layers = [params["params"][f"Dense_{i}"] for i in range(len(ens.config.layers) + 1)]
     members, in_size, width = layers[0]["kernel"].shape
