@@ -4,7 +4,6 @@ the one from before the option existed; run dirs record the precision and a resu
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 
 import jax
@@ -21,17 +20,13 @@ from morefree_jax.imagination import GoalPools
 from morefree_jax.learner_config import preset
 from morefree_jax.registry import make_run_fns
 from tests.core_helpers import fixed_batch
+from tests.program_digest import program_digest
 
-# sha256 (first 16 hex digits) of the jaxprs of a debug point_umaze morefree run's collect and train_updates
-# (update_cadence=chunk, the one cadence then) at the pinned jax and flax, made by the code before
-# agent.precision existed (commit 8f10a47): an f32 run
-# traces to these same programs, so it computes the same numbers bit for bit. A change that alters the f32
-# computation on purpose updates them (and says so in its commit).
-F32_JAXPR_SHA256 = {"collect": "f56085a391c2ad03", "train_updates": "4ca335591a69abbd"}
-
-
-def _jaxpr_digest(fn, *args) -> str:
-    return hashlib.sha256(str(jax.make_jaxpr(fn)(*args)).encode()).hexdigest()[:16]
+# program_digest of a debug point_umaze morefree run's collect and train_updates (update_cadence=chunk, the
+# one cadence then) at the pinned jax and flax, made by the code before agent.precision existed (commit
+# 8f10a47, same digests there): an f32 run traces to these same programs, so it computes the same numbers
+# bit for bit. A change that alters the f32 computation on purpose updates them (and says so in its commit).
+F32_PROGRAM_DIGESTS = {"collect": "29be1af2740616ed", "train_updates": "be4d15215c1bd786"}
 
 
 def test_an_f32_run_traces_to_the_programs_before_the_precision_option():
@@ -39,8 +34,8 @@ def test_an_f32_run_traces_to_the_programs_before_the_precision_option():
                              "update_cadence=chunk"], envs_mjx.ALL_ENVS)
     fns = make_run_fns(config, envs_mjx.make("point_umaze"))
     state = jax.eval_shape(fns.init, jax.random.PRNGKey(0))
-    digests = {name: _jaxpr_digest(getattr(fns, name), state) for name in F32_JAXPR_SHA256}
-    assert digests == F32_JAXPR_SHA256
+    digests = {name: program_digest(getattr(fns, name), state) for name in F32_PROGRAM_DIGESTS}
+    assert digests == F32_PROGRAM_DIGESTS
 
 
 def _equations(jaxpr):
