@@ -23,7 +23,8 @@ ADDRESS = re.compile(r" at 0x[0-9a-fA-FX]+")  # object reprs in parameters (func
 
 def program_digest(fn, *args) -> str:
     """sha256 (first 16 hex digits) of the program `fn(*args)` traces to: primitives, parameters, shapes
-    and dtypes, literals and the data flow (not the values of closed-over arrays, as the printed jaxpr)."""
+    and dtypes, literals and the data flow. Like the printed jaxpr, it leaves out the values of closed-over
+    arrays."""
     closed = jax.make_jaxpr(fn)(*args)
     return _jaxpr_hash(closed.jaxpr, {})[:16]
 
