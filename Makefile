@@ -29,7 +29,7 @@ MARKS ?=
 WINDOW ?=
 PLOT_AGENTS ?=
 
-.PHONY: install test test-slow lint bench bench-bar clean train evaluate experiment sweep plots records demos
+.PHONY: install test test-slow lint bench bench-bar clean train evaluate probe experiment sweep plots records demos
 
 # CUDA=12 or CUDA=13 also installs the CUDA build of the pinned JAX (NVIDIA GPUs); empty = CPU only.
 # SWEEP=1: Ray for make sweep (the dev extras have it too).
@@ -87,6 +87,10 @@ records:
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate_checkpoint run_dir=$(RUN_DIR) $(ARGS)
+
+# Where a run's goal policy ends its episodes and its learned distance on the way (docs/training.md).
+probe:
+	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.analysis.goal_probe run_dir=$(RUN_DIR) $(ARGS)
 
 # MEDAL's scripted demonstrations -> envs_mjx/demos/<task>.npz and checksums.json. Without ENV (not the
 # point_umaze default of the other targets) every task with demonstrations; ENV=push: one task.

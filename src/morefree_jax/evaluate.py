@@ -25,13 +25,15 @@ from morefree_jax.agent import MODE_DETERMINISTIC, MODE_GOAL
 
 class EvalResult(NamedTuple):
     """Per episode (E,): success at any step, success at the last step, final and smallest distance to the
-    goal; goals (E, O). pipeline_states: the episodes' states over time (T, E, ...) when kept, else None."""
+    goal; goals and final_obs, the last observations (E, O). pipeline_states: the episodes' states over
+    time (T, E, ...) when kept, else None."""
 
     success: jax.Array
     final_success: jax.Array
     final_distance: jax.Array
     min_distance: jax.Array
     goals: jax.Array
+    final_obs: jax.Array
     pipeline_states: object = None
 
 
@@ -63,7 +65,7 @@ def evaluate_policy(env, agent, agent_state, key: jax.Array, num_episodes: int,
     return EvalResult(
         success=reached, final_success=jax.vmap(env.success)(env_states.obs, goals),
         final_distance=jax.vmap(env.goal_distance)(env_states.obs, goals), min_distance=closest, goals=goals,
-        pipeline_states=states,
+        final_obs=env_states.obs, pipeline_states=states,
     )
 
 
