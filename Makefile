@@ -83,7 +83,7 @@ plots:
 # The run records of every run dir below RUNS (results/data/<task>/<group>/seed<k>.jsonl + .npz): commit them.
 records:
 	@if [ "$(RUNS)" = "$(DATA)" ]; then echo "error: make records needs RUNS=<a directory of run dirs>, e.g. RUNS=runs"; exit 2; fi
-	PYTHONPATH=src:. $(PY) -m experiments.records runs=$(RUNS) out=$(DATA)
+	PYTHONPATH=src:. $(PY) -m experiments.records runs=$(RUNS) out=$(DATA) $(ARGS)
 
 evaluate:
 	env $(ALLOC_ENV) PYTHONPATH=src:. $(PY) -m experiments.evaluate_checkpoint run_dir=$(RUN_DIR) $(ARGS)

@@ -2,10 +2,13 @@
 and .npz (`make records RUNS=$HOME/runs/x`; experiments/analysis/records.py says what they hold).
 
     python -m experiments.records runs=$HOME/runs/push_hard [out=results/data] [chance_episodes=1000]
+                                  [replace=0]
 
 Re-run it after each evaluation and commit results/data: a lost machine then loses nothing committed, and
 `make plots` on a fresh clone draws from the records. A run dir with no evaluation yet is skipped with one
-line saying why; finding none is a one-line error (exit 2). For each task without one yet it also writes
+line saying why, as is one whose record already reaches a later step (a run restarted from scratch after
+its machine was lost: the line says whether the evaluations both hold agree; replace=1 overwrites it);
+finding none is a one-line error (exit 2). For each task without one yet it also writes
 the task's chance level, <task>/zero_action.json (experiments/analysis/zero_action.py; about a minute per
 task; chance_episodes=0 skips it), which the window tables quote.
 """
@@ -24,7 +27,8 @@ DATA_DIR = "results/data"
 
 def main(argv: list[str]) -> int:
     try:
-        args = parse_keys(argv, {"runs": REQUIRED, "out": DATA_DIR, "chance_episodes": zero_action.EPISODES})
+        args = parse_keys(argv, {"runs": REQUIRED, "out": DATA_DIR, "chance_episodes": zero_action.EPISODES,
+                                  "replace": False})
     except KeyValueError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
@@ -32,18 +36,21 @@ def main(argv: list[str]) -> int:
     if not root.is_dir():
         print(f"error: runs={root} is not a directory", file=sys.stderr)
         return 2
-    tasks, written = set(), 0
+    tasks, written, skipped = set(), 0, 0
     for config in sorted(root.rglob("config.json")):
         try:
-            paths = write_record(config.parent, args["out"])
+            paths = write_record(config.parent, args["out"], replace=args["replace"])
         except ValueError as error:
             print(f"skipped {config.parent}: {error}")
+            skipped += 1
             continue
         tasks.add(paths[0].parent.parent.name)
         written += 1
         print(f"{config.parent} -> {paths[0]}")
     if not tasks:
-        print(f"error: no run dir with evaluations below {root}", file=sys.stderr)
+        message = (f"no record written: the {skipped} run dirs below {root} were skipped (above)" if skipped
+                   else f"no run dir with evaluations below {root}")
+        print(f"error: {message}", file=sys.stderr)
         return 2
     print(f"wrote {written} run records to {args['out']}")
     if args["chance_episodes"] > 0:

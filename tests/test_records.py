@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +18,7 @@ from experiments import plots, records
 from experiments.analysis import run_record, zero_action
 from experiments.analysis.records import FORMAT, config_digest, read_record, write_record
 from morefree_jax.logger import DROPPED_SHARE, read_metrics
-from tests.plot_helpers import write_runs
+from tests.plot_helpers import STEPS, SUCCESS, write_run, write_runs
 from tests.run_helpers import debug_config, debug_programs
 
 
@@ -110,6 +111,37 @@ def test_records_of_runs_still_going_are_written_again_and_without_evaluations_s
     assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
     assert len(record.read_text().splitlines()) == before + 1
     assert math.isclose(read_record(record).evaluations()[10000], 0.9)
+
+
+def _restart_from_scratch(runs, agent, seed, successes):
+    """The run dir of a run started again from step 0 (its machine lost), now at its first evaluation."""
+    run_dir = runs / "point_umaze" / agent / f"seed{seed}"
+    shutil.rmtree(run_dir)
+    write_run(run_dir, "point_umaze", agent, seed, successes)
+    lines = read_metrics(run_dir / "metrics.jsonl")
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines
+                                                   if line["step"] <= STEPS[0]))
+
+
+def test_a_restarted_run_keeps_the_longer_committed_record_and_says_whether_they_agree(tmp_path, capsys):
+    runs, out = write_runs(tmp_path / "runs"), tmp_path / "data"
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
+    committed = {path: path.read_bytes() for path in out.rglob("seed*.*")}
+    _restart_from_scratch(runs, "morefree", 0, SUCCESS["morefree", 0])  # deterministic: the same values
+    _restart_from_scratch(runs, "rf_peg", 1, [0.7, 0.3, 0.4])  # another machine's numbers
+    capsys.readouterr()
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
+    printed = capsys.readouterr().out
+    assert "morefree/seed0.jsonl holds evaluations to step 7500, the run dir only to 2500 (shared " \
+           "evaluations identical: 1 of 1): not replaced; replace=1 replaces it" in printed
+    assert "rf_peg/seed1.jsonl holds evaluations to step 7500, the run dir only to 2500 (shared " \
+           "evaluations differ from step 2500 on)" in printed
+    assert {path: path.read_bytes() for path in out.rglob("seed*.*")} == committed
+    assert records.main([f"runs={runs / 'point_umaze' / 'rf_peg' / 'seed1'}", f"out={out}",
+                         "chance_episodes=0"]) == 2
+    assert capsys.readouterr().err.strip().startswith("error: no record written: the 1 run dirs")
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0", "replace=1"]) == 0
+    assert read_record(out / "point_umaze" / "rf_peg" / "seed1.jsonl").evaluations() == {2500: 0.7}
 
 
 def test_the_chance_level_counts_goals_met_without_acting_and_window_tables_quote_it(tmp_path, monkeypatch):

@@ -12,8 +12,9 @@ A record is two files per run:
   seed<k>.npz    the visitation histograms at the run's last saved step (the top view; the side view where
                  the task has one) and the starts of successful back chunks (plots/back_starts.npz)
 A few tens of KB per run. The record is a function of the run dir: writing it again after more evaluations
-replaces it. Reading it back gives the same RunRecord as the run dir, so that the tables agree and the
-figures agree but for visitation_step= (a record keeps the last heatmap only).
+replaces it, but a record that reaches a later step than its run dir (a run restarted on a new machine) is
+kept unless replace=True. Reading it back gives the same RunRecord as the run dir, so that the tables
+agree and the figures agree but for visitation_step= (a record keeps the last heatmap only).
 """
 
 from __future__ import annotations
@@ -101,17 +102,49 @@ def _arrays(run) -> dict[str, np.ndarray]:
     return arrays
 
 
-def write_record(run_dir, data_root) -> list[pathlib.Path]:
+def _text(line: dict) -> str:
+    return json.dumps(line, sort_keys=True)  # as written: NaN equals NaN, floats round-trip exactly
+
+
+def _shared_evaluations_agree(old: list[dict], new: list[dict]) -> str:
+    """Whether the evaluations at the steps both lists hold are equal, in words."""
+    by_step = {line["step"]: line for line in old}
+    shared = [line for line in new if line["step"] in by_step]
+    differing = [line["step"] for line in shared if _text(line) != _text(by_step[line["step"]])]
+    if differing:
+        return f"shared evaluations differ from step {differing[0]} on"
+    return f"shared evaluations identical: {len(shared)} of {len(shared)}"
+
+
+def check_not_shorter(path: pathlib.Path, lines: list[dict]) -> None:
+    """ValueError (one line) where the record at `path` holds evaluations past the last of `lines` (the
+    evaluation lines of a run dir): a run restarted from scratch on a new machine, say, whose record would
+    lose what was committed. Says whether the evaluations both hold agree (a deterministic rerun's do)."""
+    if not path.exists() or not lines:
+        return
+    old = [json.loads(line) for line in path.read_text().splitlines()[1:]]
+    if not old or old[-1]["step"] <= lines[-1]["step"]:
+        return
+    raise ValueError(f"{path} holds evaluations to step {old[-1]['step']}, the run dir only to "
+                     f"{lines[-1]['step']} ({_shared_evaluations_agree(old, lines)}): not replaced; "
+                     "replace=1 replaces it")
+
+
+def write_record(run_dir, data_root, replace: bool = False) -> list[pathlib.Path]:
     """Writes the record of the run in `run_dir` below `data_root`; ValueError (one line) if the run dir has
-    no evaluation yet or is not a run dir."""
+    no evaluation yet or is not a run dir, or, unless `replace`, if the record there already reaches a later
+    step than the run dir (check_not_shorter)."""
     run_dir = pathlib.Path(run_dir)
     run = read_run(run_dir)
     config = json.loads((run_dir / "config.json").read_text())
     where = pathlib.Path(data_root) / run.task / group_dir_name(run.agent)
-    where.mkdir(parents=True, exist_ok=True)
-    lines = [header(run, config), *evaluation_lines(run)]
-    text = "".join(json.dumps(line, sort_keys=True) + "\n" for line in lines)
+    evaluations = evaluation_lines(run)
     paths = [where / f"seed{run.seed}.jsonl", where / f"seed{run.seed}.npz"]
+    if not replace:
+        check_not_shorter(paths[0], evaluations)
+    where.mkdir(parents=True, exist_ok=True)
+    lines = [header(run, config), *evaluations]
+    text = "".join(_text(line) + "\n" for line in lines)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **_arrays(run))
     _write_atomically(paths[0], text.encode())
