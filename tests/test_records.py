@@ -144,6 +144,39 @@ def test_a_restarted_run_keeps_the_longer_committed_record_and_says_whether_they
     assert read_record(out / "point_umaze" / "rf_peg" / "seed1.jsonl").evaluations() == {2500: 0.7}
 
 
+def _append_evaluation(run_dir, step, success):
+    with open(run_dir / "metrics.jsonl", "a") as file:
+        line = {"step": step, "eval/success": success, "eval/final_success": success / 2}
+        file.write(json.dumps(line) + "\n")
+
+
+def test_a_run_that_passes_its_record_with_other_numbers_keeps_the_record(tmp_path, capsys):
+    runs, out = write_runs(tmp_path / "runs"), tmp_path / "data"
+    seed0 = runs / "point_umaze" / "morefree" / "seed0"
+    metrics = (seed0 / "metrics.jsonl").read_text()
+    (seed0 / "metrics.jsonl").write_text(metrics.rsplit("{", 1)[0])  # between 7500's eval and visitation
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
+    (seed0 / "metrics.jsonl").write_text(metrics)
+    _append_evaluation(seed0, 10000, 0.9)  # the same run, further on: its record grows
+    seed1 = runs / "point_umaze" / "rf_peg" / "seed1"
+    committed = (out / "point_umaze" / "rf_peg" / "seed1.jsonl").read_bytes()
+    shutil.rmtree(seed1)
+    write_run(seed1, "point_umaze", "rf_peg", 1, [0.7, 0.3, 0.4])  # restarted elsewhere, other numbers
+    _append_evaluation(seed1, 10000, 0.5)
+    capsys.readouterr()
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0"]) == 0
+    printed = capsys.readouterr().out
+    assert "rf_peg/seed1.jsonl and the run dir differ from step 2500 on (the run dir reaches 10000, the " \
+           "record 7500): not replaced; replace=1 replaces it" in printed
+    assert (out / "point_umaze" / "rf_peg" / "seed1.jsonl").read_bytes() == committed
+    grown = out / "point_umaze" / "morefree" / "seed0.jsonl"
+    assert read_record(grown).evaluations()[10000] == 0.9 and printed.count("skipped") == 1
+    at_7500 = [json.loads(line) for line in grown.read_text().splitlines()][-2]
+    assert at_7500["step"] == 7500 and "visitation/task_relevant" in at_7500  # the line written late
+    assert records.main([f"runs={runs}", f"out={out}", "chance_episodes=0", "replace=1"]) == 0
+    assert read_record(out / "point_umaze" / "rf_peg" / "seed1.jsonl").evaluations()[2500] == 0.7
+
+
 def test_the_chance_level_counts_goals_met_without_acting_and_window_tables_quote_it(tmp_path, monkeypatch):
     env = envs_mjx.make("tabletop")
     start = env.reset(jax.random.PRNGKey(0)).obs

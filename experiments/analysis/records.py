@@ -106,34 +106,54 @@ def _text(line: dict) -> str:
     return json.dumps(line, sort_keys=True)  # as written: NaN equals NaN, floats round-trip exactly
 
 
+def _keeps(new: dict, old: dict) -> bool:
+    """Whether evaluation line `new` holds every value of `old` (it may add some: a record written between
+    a step's eval and visitation lines lacks the latter)."""
+    return all(key in new and _text(new[key]) == _text(value) for key, value in old.items())
+
+
+def _first_differing_step(old: list[dict], new: list[dict]) -> int | None:
+    """The first step both lists hold an evaluation of where `new` does not keep `old`; None if none."""
+    by_step = {line["step"]: line for line in old}
+    differing = [line["step"] for line in new
+                 if line["step"] in by_step and not _keeps(line, by_step[line["step"]])]
+    return differing[0] if differing else None
+
+
 def _shared_evaluations_agree(old: list[dict], new: list[dict]) -> str:
     """Whether the evaluations at the steps both lists hold are equal, in words."""
-    by_step = {line["step"]: line for line in old}
-    shared = [line for line in new if line["step"] in by_step]
-    differing = [line["step"] for line in shared if _text(line) != _text(by_step[line["step"]])]
-    if differing:
-        return f"shared evaluations differ from step {differing[0]} on"
-    return f"shared evaluations identical: {len(shared)} of {len(shared)}"
+    differing = _first_differing_step(old, new)
+    if differing is not None:
+        return f"shared evaluations differ from step {differing} on"
+    shared = len({line["step"] for line in old} & {line["step"] for line in new})
+    return f"shared evaluations identical: {shared} of {shared}"
 
 
-def check_not_shorter(path: pathlib.Path, lines: list[dict]) -> None:
-    """ValueError (one line) where the record at `path` holds evaluations past the last of `lines` (the
-    evaluation lines of a run dir): a run restarted from scratch on a new machine, say, whose record would
-    lose what was committed. Says whether the evaluations both hold agree (a deterministic rerun's do)."""
+def check_keeps_committed(path: pathlib.Path, lines: list[dict]) -> None:
+    """ValueError (one line) where writing `lines` (the evaluation lines of a run dir) would lose what the
+    record at `path` holds: it reaches a later step (a run restarted from scratch on a new machine, say), or
+    an evaluation both hold differs (a restart on other hardware or code that has since passed the record).
+    A deterministic rerun that has passed the record replaces it: every evaluation it held is kept."""
     if not path.exists() or not lines:
         return
     old = [json.loads(line) for line in path.read_text().splitlines()[1:]]
-    if not old or old[-1]["step"] <= lines[-1]["step"]:
+    if not old:
         return
-    raise ValueError(f"{path} holds evaluations to step {old[-1]['step']}, the run dir only to "
-                     f"{lines[-1]['step']} ({_shared_evaluations_agree(old, lines)}): not replaced; "
-                     "replace=1 replaces it")
+    if old[-1]["step"] > lines[-1]["step"]:
+        raise ValueError(f"{path} holds evaluations to step {old[-1]['step']}, the run dir only to "
+                         f"{lines[-1]['step']} ({_shared_evaluations_agree(old, lines)}): not replaced; "
+                         "replace=1 replaces it")
+    differing = _first_differing_step(old, lines)
+    if differing is not None:
+        raise ValueError(f"{path} and the run dir differ from step {differing} on (the run dir reaches "
+                         f"{lines[-1]['step']}, the record {old[-1]['step']}): not replaced; "
+                         "replace=1 replaces it")
 
 
 def write_record(run_dir, data_root, replace: bool = False) -> list[pathlib.Path]:
     """Writes the record of the run in `run_dir` below `data_root`; ValueError (one line) if the run dir has
     no evaluation yet or is not a run dir, or, unless `replace`, if the record there already reaches a later
-    step than the run dir (check_not_shorter)."""
+    step than the run dir or differs from it (check_keeps_committed)."""
     run_dir = pathlib.Path(run_dir)
     run = read_run(run_dir)
     config = json.loads((run_dir / "config.json").read_text())
@@ -141,7 +161,7 @@ def write_record(run_dir, data_root, replace: bool = False) -> list[pathlib.Path
     evaluations = evaluation_lines(run)
     paths = [where / f"seed{run.seed}.jsonl", where / f"seed{run.seed}.npz"]
     if not replace:
-        check_not_shorter(paths[0], evaluations)
+        check_keeps_committed(paths[0], evaluations)
     where.mkdir(parents=True, exist_ok=True)
     lines = [header(run, config), *evaluations]
     text = "".join(_text(line) + "\n" for line in lines)
