@@ -31,8 +31,8 @@ for precision in ("f32", "bf16"):
     rows += bench_core.bench_train("paper", 3, peak, precision)
 for precision, num_seeds in (("f32", 1), ("bf16", 1), ("f32", 3), ("bf16", 3)):
     result = bench_seeds.run_throughput(num_seeds, "auto", chunks=4, precision=precision)
-    rows.append(bench_seeds._row(f"cpu_run/{precision}_{num_seeds}_seeds_per_seed_steps_per_s",
-                                 bench_seeds._per_seed_steps(result), "steps/s",
+    rows.append(bench_seeds._row(f"cpu_run/{precision}_{num_seeds}_seeds_steps_per_s",
+                                 bench_seeds._steps_per_s(result), "steps/s",
                                  f"compile {result['compile_s']:.0f} s; collect {result['collect_s']:.2f} s, "
                                  f"train {result['train_s']:.2f} s per chunk"))
 for row in rows:

@@ -1,6 +1,6 @@
-"""Seeds in one program (`make bench`, section `seeds`): per-seed throughput of a whole `cpu` run at 1, 2 and
-4 seeds, against two single-seed processes sharing the machine; compile times; the `paper` train step at 1
-and 2 seeds; achieved FLOP/s next to a matmul peak measured in the same run.
+"""Seeds in one program (`make bench`, section `seeds`): env steps/s of a whole `cpu` run at 1, 2 and 4 seeds
+(all the program's seeds together), against two single-seed processes sharing the machine; compile times;
+the `paper` train step at 1 and 2 seeds; achieved FLOP/s next to a matmul peak measured in the same run.
 
     python -m experiments.benchmarks only=seeds
     python -m experiments.benchmarks.seeds run=2,map,8   # one measurement (2 seeds, lax.map, 8 chunks), JSON
@@ -68,7 +68,8 @@ def run_throughput(num_seeds: int, seed_axis: str, chunks: int, precision: str =
             "searches": searches, "chunks": chunks}
 
 
-def _per_seed_steps(result: dict) -> float:
+def _steps_per_s(result: dict) -> float:
+    """Env steps per second of all the program's seeds together (each seed runs at this over the seeds)."""
     return result["seeds"] * result["chunk_len"] / (result["collect_s"] + result["train_s"])
 
 
@@ -88,9 +89,9 @@ def _result(child: subprocess.Popen):
 
 
 def _two_processes(chunks: int) -> float:
-    """Per-seed env steps/s of two single-seed processes running at the same time on this machine."""
+    """Env steps/s of two single-seed processes running at the same time on this machine, together."""
     children = [_child(f"run=1,map,{chunks}") for _ in range(2)]
-    return sum(_per_seed_steps(_result(child)) for child in children) / 2
+    return sum(_steps_per_s(_result(child)) for child in children)
 
 
 def _cpu_flops_per_update() -> float:
@@ -111,15 +112,16 @@ def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vma
             except RuntimeError as error:  # e.g. out of memory: the row says so, the others still run
                 rows.append(_row(f"cpu_run/{seed_axis}_{num_seeds}_seeds_failed", 0.0, "", str(error)))
                 continue
-            per_seed = _per_seed_steps(result)
+            together = _steps_per_s(result)
             if show is not None:
                 show(result)
-            base = per_seed if num_seeds == 1 else base
+            base = together if num_seeds == 1 else base
             achieved = flops * result["updates"] * num_seeds / result["train_s"]
             name = f"cpu_run/{seed_axis}_{num_seeds}_seeds"
             rows += [
-                _row(f"{name}_per_seed_steps_per_s", per_seed, "steps/s",
-                     f"{per_seed / base:.2f}x of one seed; {chunks} morefree chunks, searches per seed "
+                _row(f"{name}_steps_per_s", together, "steps/s",
+                     f"all seeds together, {together / base:.2f}x of one seed alone; {chunks} morefree "
+                     "chunks, searches per seed "
                      f"{result['searches']}; collect {result['collect_s']:.2f} s, "
                      f"train {result['train_s']:.2f} s"),
                 _row(f"{name}_compile_s", result["compile_s"], "s", "collect + train_updates, all seeds"),
@@ -129,8 +131,8 @@ def run_rows(chunks: int, peak: float, seed_counts=(1, 2, 4), modes=("map", "vma
     if not processes:
         return rows
     separate = _two_processes(chunks)
-    rows.append(_row("cpu_run/two_processes_per_seed_steps_per_s", separate, "steps/s",
-                     f"{separate / base:.2f}x of one seed alone: two single-seed processes at once"))
+    rows.append(_row("cpu_run/two_processes_steps_per_s", separate, "steps/s",
+                     f"{separate / base:.2f}x of one seed alone: both of two single-seed processes at once"))
     return rows
 
 
