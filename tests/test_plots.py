@@ -181,11 +181,39 @@ def test_window_table_averages_each_seed_over_its_evaluations_first(runs, tmp_pa
     assert float(rows["rf_peg"]["final_success_mean"]) == pytest.approx(np.mean([0.075, 0.175]), abs=1e-4)
     table = (out / "point_umaze_window.md").read_text()
     assert "| point_umaze | morefree | 3 | 5,000-7,500 | 2 | 0.60 ± 0.08 |" in table
-    assert "| 10.0% ± 5.8 | aaaaaaa |" in table  # task-relevant at 7,500: 0, 0.1, 0.2 over the seeds
+    # Task-relevant at 7,500: 0, 0.1, 0.2 over the seeds; in the window: unknown, as these configs do not
+    # say how many rows the replay keeps.
+    assert "| 10.0% ± 5.8 | - | aaaaaaa |" in table
     # A window past the runs' last evaluation has no rows.
     assert plots.main([f"runs={runs}", f"out={out}", "window=5000:10000"]) == 0
     assert (out / "point_umaze_window.csv").read_text().count("\n") == 1
 
+
+
+def test_the_share_in_the_window_counts_only_the_steps_between_its_evaluations(tmp_path):
+    run_dir = tmp_path / "point_umaze" / "morefree" / "seed0"
+    write_run(run_dir, "point_umaze", "morefree", 0, [0.0, 0.5, 1.0])
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps(config | {"agent": {"replay": {"capacity": 7500}}}))
+    lines = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    shares = {2500: 1.0, 5000: 0.6, 7500: 0.5}  # in-region rows: 2,500, 3,000, 3,750
+    for line in lines:
+        if "visitation/task_relevant" in line:
+            line["visitation/task_relevant"] = shares[line["step"]]
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    run = run_record.read_run(run_dir)
+    assert run.replay_capacity == 7500
+    assert run_groups.share_between(run, 2500, 5000) == pytest.approx(0.2)
+    assert run_groups.share_between(run, 5000, 7500) == pytest.approx(0.3)
+    assert run_groups.share_between(run, 2500, 7500) == pytest.approx(0.25)
+    assert math.isnan(run_groups.share_between(run, 7500, 7500))
+    row = run_groups.window_rows({("point_umaze", "morefree"): [run]}, 5000, 7500)[0]
+    assert row["window_relevant_mean"] == pytest.approx(0.3) and math.isnan(row["window_relevant_stderr"])
+    run.steps[7500]["visitation/task_relevant"] = 0.4 - 1e-9  # float32 shares: no row in the region
+    assert run_groups.share_between(run, 5000, 7500) == 0.0
+    run.replay_capacity = 5000  # the ring wrapped by 7,500: its rows are no longer one per step since 0
+    assert math.isnan(run_groups.share_between(run, 5000, 7500))
+    assert run_groups.share_between(run, 2500, 5000) == pytest.approx(0.2)
 
 
 def test_without_a_window_each_task_gets_the_last_quarter_every_agent_reached(runs, tmp_path):

@@ -81,9 +81,12 @@ def test_plots_from_records_equal_plots_from_the_run_dirs(tmp_path):
 def test_a_record_reads_back_as_the_run_dir_reads(tmp_path):
     runs = write_runs(tmp_path / "runs")
     run_dir = runs / "point_umaze" / "morefree" / "seed1"
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps(config | {"agent": {"replay": {"capacity": 9000}}}))
     jsonl, _ = write_record(run_dir, tmp_path / "data")
     from_dir, from_record = run_record.read_run(run_dir), read_record(jsonl)
-    for field in ("task", "agent", "seed", "commits", "base_agent"):
+    assert from_record.replay_capacity == 9000
+    for field in ("task", "agent", "seed", "commits", "base_agent", "replay_capacity"):
         assert getattr(from_record, field) == getattr(from_dir, field)
     assert from_record.evaluations() == from_dir.evaluations()
     for step in from_dir.evaluations():

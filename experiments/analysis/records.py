@@ -28,7 +28,7 @@ import pathlib
 
 import numpy as np
 
-from experiments.analysis.run_record import RunRecord, read_run, read_starts, short_commits
+from experiments.analysis.run_record import RunRecord, read_run, read_starts, replay_capacity, short_commits
 from morefree_jax.checkpoint import config_hash
 from morefree_jax.config import RESUMABLE_KEYS
 from morefree_jax.legacy import stored_value
@@ -219,4 +219,5 @@ def read_record(path) -> RunRecord:
         raise ValueError("no evaluation yet")
     steps = {int(line["step"]): line for line in evaluations}
     return RunRecord(path, head["task"], head["label"], int(head["seed"]), steps,
-                     short_commits(head["starts"]), head["agent"], RecordArtifacts(path.with_suffix(".npz")))
+                     short_commits(head["starts"]), head["agent"], RecordArtifacts(path.with_suffix(".npz")),
+                     replay_capacity(head.get("config", {})))

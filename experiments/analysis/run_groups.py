@@ -144,7 +144,7 @@ def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
 
 WINDOW_COLUMNS = ("task", "agent", "seeds", "start", "stop", "evaluations", "success_mean", "success_stderr",
                   "final_success_mean", "final_success_stderr", "task_relevant_mean", "task_relevant_stderr",
-                  "commits")
+                  "window_relevant_mean", "window_relevant_stderr", "commits")
 
 
 def last_quarter(groups, task: str) -> tuple[int, int] | None:
@@ -160,8 +160,9 @@ def last_quarter(groups, task: str) -> tuple[int, int] | None:
 def window_rows(groups, start: int, stop: int) -> list[dict]:
     """One row per (task, agent) whose every seed has evaluated at `stop`: each seed's mean success over its
     evaluations in [start, stop], then mean and standard error of those over seeds; the task-relevant share
-    of the replay at `stop`. Success at a single evaluation swings between 0 and 1 in reset-free runs; a
-    window says what the agent holds."""
+    of the replay at `stop`, and of the env steps between the window's first evaluation and `stop` alone
+    (share_between), where the share of the whole replay hides a change. Success at a single evaluation
+    swings between 0 and 1 in reset-free runs; a window says what the agent holds."""
     rows = []
     for (task, agent), group in sorted(groups.items()):
         series = [run.evaluations("eval/success") for run in group]
@@ -172,10 +173,24 @@ def window_rows(groups, start: int, stop: int) -> list[dict]:
         success = mean_stderr([np.mean([s[step] for step in steps]) for s in series])
         final = mean_stderr([np.mean([f.get(step, math.nan) for step in steps]) for f in finals])
         relevant = mean_stderr([run.steps[stop].get("visitation/task_relevant", math.nan) for run in group])
+        in_window = mean_stderr([share_between(run, steps[0], stop) for run in group])
         commits = sorted({c for run in group for c in run.commits})
-        rows.append(dict(zip(WINDOW_COLUMNS, (task, agent, len(group), start, stop, len(steps), *success,
-                                              *final, *relevant, " ".join(commits)), strict=True)))
+        values = (task, agent, len(group), start, stop, len(steps), *success, *final, *relevant, *in_window,
+                  " ".join(commits))
+        rows.append(dict(zip(WINDOW_COLUMNS, values, strict=True)))
     return rows
+
+
+def share_between(run: RunRecord, first: int, last: int) -> float:
+    """The task-relevant share of the env steps in (first, last] alone. The logged share is over every row
+    the replay holds, one per env step since the start while the run is within the replay's capacity, so
+    it is the difference of the in-region rows at the two steps over the steps between. NaN where that does
+    not hold (first == last, a share missing, the capacity unknown or passed)."""
+    shares = [run.steps[step].get("visitation/task_relevant", math.nan) for step in (first, last)]
+    if first >= last or run.replay_capacity is None or last > run.replay_capacity:
+        return math.nan
+    share = (shares[1] * last - shares[0] * first) / (last - first)
+    return float(np.clip(share, 0.0, 1.0))  # float32 shares: a window with no row in may read -1e-9
 
 
 def percent(share: float) -> str:
@@ -207,14 +222,16 @@ def markdown_table(rows: list[dict]) -> str:
 
 def window_markdown(rows: list[dict]) -> str:
     lines = [f"| task | agent | seeds | env steps | evaluations | mean {SUCCESS_ANY} | mean {SUCCESS_LAST} "
-             "| task-relevant at the end | commits |", "|---|---|---|---|---|---|---|---|---|"]
+             "| task-relevant at the end | task-relevant in the window | commits |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         relevant = percent_with_error(row["task_relevant_mean"], row["task_relevant_stderr"])
+        in_window = percent_with_error(row["window_relevant_mean"], row["window_relevant_stderr"])
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | "
                      f"{row['start']:,}-{row['stop']:,} | {row['evaluations']} | "
                      f"{with_error(row['success_mean'], row['success_stderr'])} | "
                      f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
-                     f"{relevant} | {row['commits']} |")
+                     f"{relevant} | {in_window} | {row['commits']} |")
     return "\n".join(lines) + "\n"
 
 

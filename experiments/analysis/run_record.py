@@ -54,6 +54,7 @@ class RunRecord:
     commits: tuple[str, ...]
     base_agent: str = ""  # the registry's name (agents= filters on it)
     artifacts: Any = None  # RunDirArtifacts, records.RecordArtifacts: saved_views, histogram, back_starts
+    replay_capacity: int | None = None  # rows its replay keeps (None: the config does not say)
 
     def evaluations(self, key: str = "eval/success") -> dict[int, float]:
         return {step: record[key] for step, record in sorted(self.steps.items()) if key in record}
@@ -114,6 +115,16 @@ def agent_label(config: dict) -> str:
     return " ".join([agent, *extras])
 
 
+def replay_capacity(config: dict) -> int | None:
+    """The rows the run's replay keeps: a world-model agent's agent.replay.capacity, a model-free agent's
+    baseline.replay_capacity; None where the config does not say."""
+    if config.get("run", {}).get("agent") in variants.VARIANTS:
+        capacity = config.get("agent", {}).get("replay", {}).get("capacity")
+    else:
+        capacity = config.get("baseline", {}).get("replay_capacity")
+    return None if capacity is None else int(capacity)
+
+
 def read_run(run_dir: pathlib.Path) -> RunRecord:
     """The run in `run_dir`; ValueError (one line: why) when it cannot be used."""
     metrics = run_dir / "metrics.jsonl"
@@ -129,7 +140,7 @@ def read_run(run_dir: pathlib.Path) -> RunRecord:
     for record in read_metrics(metrics):
         steps.setdefault(int(record["step"]), {}).update(record)
     record = RunRecord(run_dir, task, label, seed, steps, short_commits(read_starts(run_dir)), agent,
-                       RunDirArtifacts(run_dir))
+                       RunDirArtifacts(run_dir), replay_capacity(config))
     if not record.evaluations():
         raise ValueError("no evaluation yet")
     return record
