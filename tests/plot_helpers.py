@@ -19,7 +19,9 @@ def write_run(run_dir, task, agent, seed, successes, commit="a" * 40, back_start
                                               + "\n")
     lines = []
     for step, success in zip(STEPS, successes, strict=True):
-        lines.append({"step": step, "wm/loss": 1.0, "train/dropped_share": 0.002 * seed})
+        back = {"goal/share_initial": 0.15 if agent == "morefree" else 0.0,
+                "go/reach_rate_initial": 0.1 * seed}
+        lines.append({"step": step, "wm/loss": 1.0, "train/dropped_share": 0.002 * seed, **back})
         lines.append({"step": step, "eval/success": success, "eval/final_success": success / 2})
         lines.append({"step": step, "visitation/task_relevant": 0.1 * seed})
         histogram = np.zeros((50, 50))

@@ -76,7 +76,10 @@ def test_plots_writes_every_figure_and_the_table(runs, tmp_path, capsys):
     assert float(rows[3]["final_success_mean"]) == pytest.approx(0.15)
     assert rows[0]["commits"] == "aaaaaaa"
     table = (out / "point_umaze_results.md").read_text()
-    row = "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 | 0.15 ± 0.05 | 0.050 | 0.1% | aaaaaaa |"
+    # rf_peg sends no chunk back ("-"); morefree's back chunks reached the start 0, 10 and 20% of the time.
+    row = "| point_umaze | rf_peg | 2 | 7,500 | 0.30 ± 0.10 | 0.15 ± 0.05 | 0.050 | - | 0.1% | aaaaaaa |"
+    assert row in table
+    row = "| point_umaze | morefree | 3 | 7,500 | 0.80 ± 0.12 | 0.40 ± 0.06 | 0.100 | 10.0% | 0.2% |"
     assert row in table
     assert "| success (any step) | success (last step) |" in table and "runs: aaaaaaa" in table
     assert float(rows[3]["dropped_share_mean"]) == pytest.approx(0.001)

@@ -24,16 +24,17 @@ from tests.run_helpers import debug_config, debug_programs
 
 def _metrics_at_evaluations(run_dir) -> dict[int, dict]:
     """Straight from metrics.jsonl: per evaluated step, its eval/* and visitation/* values and the dropped
-    share last logged at or before it."""
+    share and the back chunks' share and reach rate last logged at or before it."""
     lines = read_metrics(run_dir / "metrics.jsonl")
     evaluated = sorted({line["step"] for line in lines if "eval/success" in line})
     expected = {}
     for step in evaluated:
         values = {key: value for line in lines if line["step"] == step for key, value in line.items()
                   if key.startswith(("eval/", "visitation/"))}
-        dropped = [line[DROPPED_SHARE] for line in lines if DROPPED_SHARE in line and line["step"] <= step]
-        if dropped:
-            values[DROPPED_SHARE] = dropped[-1]
+        for key in (DROPPED_SHARE, "goal/share_initial", "go/reach_rate_initial"):
+            logged = [line[key] for line in lines if key in line and line["step"] <= step]
+            if logged:
+                values[key] = logged[-1]
         expected[step] = values
     return expected
 
@@ -57,6 +58,7 @@ def test_a_runs_record_holds_what_its_metrics_jsonl_holds(tmp_path):
     assert [line["step"] for line in evaluations] == sorted(expected) and len(expected) >= 2
     for line in evaluations:
         assert {key: value for key, value in line.items() if key != "step"} == expected[line["step"]]
+    assert {"goal/share_initial", "go/reach_rate_initial"} <= set(evaluations[-1])
     with np.load(npz) as arrays:
         last = max(expected)
         assert int(arrays["visitation_step"]) == last

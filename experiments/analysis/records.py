@@ -7,8 +7,8 @@
 A record is two files per run:
   seed<k>.jsonl  a header line (format, task, agent, group label, seed, preset, precision, update cadence,
                  config digest, every start's commit, the config), then one line per evaluation: the step,
-                 every eval/* and visitation/* value logged at that step, and train/dropped_share as last
-                 logged at or before it
+                 every eval/* and visitation/* value logged at that step, and train/dropped_share and the
+                 back chunks' share and reach rate as last logged at or before it
   seed<k>.npz    the visitation histograms at the run's last saved step (the top view; the side view where
                  the task has one) and the starts of successful back chunks (plots/back_starts.npz)
 A few tens of KB per run. The record is a function of the run dir: writing it again after more evaluations
@@ -28,7 +28,15 @@ import pathlib
 
 import numpy as np
 
-from experiments.analysis.run_record import RunRecord, read_run, read_starts, replay_capacity, short_commits
+from experiments.analysis.run_record import (
+    BACK_REACHED,
+    BACK_SHARE,
+    RunRecord,
+    read_run,
+    read_starts,
+    replay_capacity,
+    short_commits,
+)
 from morefree_jax.checkpoint import config_hash
 from morefree_jax.config import RESUMABLE_KEYS
 from morefree_jax.legacy import stored_value
@@ -36,6 +44,7 @@ from morefree_jax.logger import DROPPED_SHARE
 
 FORMAT = "morefree-jax run record 1"
 KEPT_PREFIXES = ("eval/", "visitation/")  # the values the figures and tables read, per evaluation
+LATEST_KEYS = (DROPPED_SHARE, BACK_SHARE, BACK_REACHED)  # and those they read as last logged before it
 VIEW_PREFIXES = ("visitation", "side_visitation")  # the heatmaps a run dir saves (figures.HeatmapView)
 BACK_STARTS = "back_starts.npz"
 
@@ -61,16 +70,17 @@ def _provenance(run_dir: pathlib.Path) -> list[dict]:
 
 
 def evaluation_lines(run) -> list[dict]:
-    """One dict per evaluation of a run_record.RunRecord: step, eval/* and visitation/* at that step, and the
-    dropped share as last logged at or before it (it is logged with the training metrics)."""
+    """One dict per evaluation of a run_record.RunRecord: step, eval/* and visitation/* at that step, and
+    LATEST_KEYS as last logged at or before it (they are logged with the training metrics)."""
     lines = []
     for step in run.evaluations():
         line = {"step": step}
         logged = sorted(run.steps[step].items())
         line.update({key: value for key, value in logged if key.startswith(KEPT_PREFIXES)})
-        dropped = run.latest(DROPPED_SHARE, step)
-        if not math.isnan(dropped):  # model-free agents log none
-            line[DROPPED_SHARE] = dropped
+        for key in LATEST_KEYS:
+            value = run.latest(key, step)
+            if not math.isnan(value):  # model-free agents log none of them
+                line[key] = value
         lines.append(line)
     return lines
 

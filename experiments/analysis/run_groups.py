@@ -118,13 +118,15 @@ def step_at_mark(group: list[RunRecord], mark: int) -> int | None:
 # protocol").
 SUCCESS_ANY, SUCCESS_LAST = "success (any step)", "success (last step)"
 RESULT_COLUMNS = ("task", "agent", "seeds", "step", "success_mean", "success_stderr", "final_success_mean",
-                  "final_success_stderr", "task_relevant_mean", "dropped_share_mean", "commits")
+                  "final_success_stderr", "task_relevant_mean", "back_reached_mean", "dropped_share_mean",
+                  "commits")
 
 
 def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
     """One row per (task, agent, step mark) the group reached, at its latest evaluation at or before the
     mark (`step`): success (any step) and at the last step of the evaluation episodes, task-relevant share
-    of the replay; mean and standard error over seeds."""
+    of the replay, the share of the back chunks so far that reached their initial state; mean and standard
+    error over seeds."""
     rows = []
     for (task, agent), group in sorted(groups.items()):
         for mark in marks.get(task, []):
@@ -135,10 +137,12 @@ def results_rows(groups, marks: dict[str, list[int]]) -> list[dict]:
             success = mean_stderr([r["eval/success"] for r in at])
             final = mean_stderr([r.get("eval/final_success", math.nan) for r in at])
             relevant = mean_stderr([r.get("visitation/task_relevant", math.nan) for r in at])
+            back = mean_stderr([run.back_reach_rate(step) for run in group])
             dropped = mean_stderr([run.latest(DROPPED_SHARE, step) for run in group])
             commits = sorted({c for run in group for c in run.commits})
-            rows.append(dict(zip(RESULT_COLUMNS, (task, agent, len(group), step, *success, *final,
-                                                  relevant[0], dropped[0], " ".join(commits)), strict=True)))
+            values = (task, agent, len(group), step, *success, *final, relevant[0], back[0], dropped[0],
+                      " ".join(commits))
+            rows.append(dict(zip(RESULT_COLUMNS, values, strict=True)))
     return rows
 
 
@@ -210,12 +214,14 @@ def percent_with_error(mean: float, stderr: float) -> str:
 
 def markdown_table(rows: list[dict]) -> str:
     lines = [f"| task | agent | seeds | env steps | {SUCCESS_ANY} | {SUCCESS_LAST} | task-relevant | "
-             "dropped updates | commits |", "|---|---|---|---|---|---|---|---|---|"]
+             "back chunks reaching the start | dropped updates | commits |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['task']} | {row['agent']} | {row['seeds']} | {row['step']:,} | "
                      f"{with_error(row['success_mean'], row['success_stderr'])} | "
                      f"{with_error(row['final_success_mean'], row['final_success_stderr'])} | "
-                     f"{row['task_relevant_mean']:.3f} | {percent(row['dropped_share_mean'])} | "
+                     f"{row['task_relevant_mean']:.3f} | {percent(row['back_reached_mean'])} | "
+                     f"{percent(row['dropped_share_mean'])} | "
                      f"{row['commits']} |")
     return "\n".join(lines) + "\n"
 

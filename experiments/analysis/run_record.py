@@ -19,6 +19,10 @@ from morefree_jax import variants
 from morefree_jax.legacy import stored_value
 from morefree_jax.logger import PROVENANCE_FILE, read_metrics
 
+# Logged with the training metrics, running since the run's start: the share of chunks that went back to
+# an initial state (Back-and-Forth Go-Explore), and the share of those whose go phase met the success test.
+BACK_SHARE, BACK_REACHED = "goal/share_initial", "go/reach_rate_initial"
+
 
 class RunDirArtifacts:
     """The heatmaps and back-chunk starts a run dir saves in plots/ (logger.RunLogger)."""
@@ -64,6 +68,13 @@ class RunRecord:
         log_every steps, not with the evaluations."""
         logged = [value for at, value in self.evaluations(key).items() if at <= step]
         return logged[-1] if logged else math.nan
+
+    def back_reach_rate(self, step: int) -> float:
+        """The share of the back chunks so far that reached their initial state, as last logged at or before
+        `step`; NaN for a run that sends none back (or logged none)."""
+        if not self.latest(BACK_SHARE, step) > 0:  # NaN or 0
+            return math.nan
+        return self.latest(BACK_REACHED, step)
 
     def saved_views(self, prefix: str = "visitation") -> set[int]:
         """Steps with a saved heatmap of this view (prefix "visitation" or "side_visitation")."""
